@@ -1,0 +1,238 @@
+"""The plant: how a vehicle really moves (paper eq. 9, Ornstein-Uhlenbeck wind).
+
+    dv_i = a_i dt - c0 (v_i - v_o) dt + V_o dW_i            (eq. 1)
+    dr_i = v_i dt                                            (eq. 2)
+    ds_i = (A s_i + B (a_i + c0 v_o)) dt + G dW_i            (eq. 5 / 9)
+
+integrated with Euler-Maruyama (the Wiener increment scales with sqrt(h)).
+
+This module is pure numpy with no I/O. It is the one piece of code that both the
+mock vehicle process and the in-process simulator (``mfg_swarm.sim``) use to move
+vehicles, so that a vehicle's wind is the same whichever process simulates it:
+each vehicle's noise is one stream derived from ``(seed, vehicle_id)`` and consumed
+in a fixed order (2 standard normals for the initial wind velocity, then 2 per
+physics sub-step). The controller never imports it: it keeps its own model of the
+dynamics (A, B, G in ``mfg_autopilot.model``).
+
+Shapes: ``states`` is ``(n_vehicles, 4)`` with columns ``[x_m, y_m, vx_m_s, vy_m_s]``
+(paper frame: x = north, y = east of MAVLink LOCAL_NED).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "WindParams",
+    "PlantParams",
+    "NoiseStream",
+    "noise_stream",
+    "initial_wind_velocity",
+    "euler_maruyama_step",
+    "saturate_norm",
+    "hold_acc_m_s2",
+    "SwarmPlant",
+]
+
+
+@dataclass(frozen=True)
+class WindParams:
+    """Ornstein-Uhlenbeck wind of eq. 1 (paper Sec. V values by default)."""
+
+    c0_per_s: float = 0.1
+    """c0: rate at which the airframe's velocity relaxes to the wind, 1/s."""
+    mean_wind_m_s: tuple[float, float] = (1.0, -1.0)
+    """v_o: average wind velocity (north, east), m/s."""
+    wind_diffusion_m_s: tuple[tuple[float, float], tuple[float, float]] = ((0.1, 0.0), (0.0, 0.1))
+    """V_o: 2x2 diffusion matrix of the wind velocity, m/s per sqrt(s)."""
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.c0_per_s) and self.c0_per_s > 0):
+            raise ValueError(f"c0_per_s must be finite and > 0, got {self.c0_per_s}")
+        if not np.all(np.isfinite(self.mean_wind_m_s)) or len(self.mean_wind_m_s) != 2:
+            raise ValueError(f"mean_wind_m_s must be 2 finite numbers, got {self.mean_wind_m_s}")
+        v = np.asarray(self.wind_diffusion_m_s, dtype=float)
+        if v.shape != (2, 2) or not np.all(np.isfinite(v)):
+            raise ValueError(f"wind_diffusion_m_s must be a finite 2x2 matrix, got {self.wind_diffusion_m_s}")
+
+    @property
+    def v_o(self) -> np.ndarray:
+        return np.asarray(self.mean_wind_m_s, dtype=float)
+
+    @property
+    def V_o(self) -> np.ndarray:
+        return np.asarray(self.wind_diffusion_m_s, dtype=float)
+
+    def stationary_velocity_cov(self) -> np.ndarray:
+        """Stationary covariance of v under a = 0 (continuous time): V_o V_o^T / (2 c0)."""
+        return self.V_o @ self.V_o.T / (2.0 * self.c0_per_s)
+
+
+@dataclass(frozen=True)
+class PlantParams:
+    wind: WindParams = field(default_factory=WindParams)
+    acc_limit_m_s2: float = 2.0
+    """The airframe's acceleration limit (norm of the horizontal acceleration), m/s^2."""
+    physics_dt_s: float = 0.1
+    """Largest Euler-Maruyama sub-step, s. A control step dt is split into
+    ceil(dt / physics_dt_s) equal sub-steps with the acceleration held."""
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.acc_limit_m_s2) and self.acc_limit_m_s2 > 0):
+            raise ValueError(f"acc_limit_m_s2 must be finite and > 0, got {self.acc_limit_m_s2}")
+        if not (np.isfinite(self.physics_dt_s) and self.physics_dt_s > 0):
+            raise ValueError(f"physics_dt_s must be finite and > 0, got {self.physics_dt_s}")
+
+    def substeps(self, dt_s: float) -> int:
+        """Number of physics sub-steps for a control step of ``dt_s``."""
+        if not (np.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s must be finite and > 0, got {dt_s}")
+        return max(1, int(np.ceil(dt_s / self.physics_dt_s - 1e-9)))
+
+
+class NoiseStream:
+    """One vehicle's stream of standard normals, derived from ``(seed, vehicle_id)``.
+
+    Draws are served from an internal buffer; numpy's ``Generator.standard_normal``
+    yields the same sequence whatever the chunk sizes, so a buffered stream (the
+    simulator) and an unbuffered one (a mock process) agree draw for draw.
+    """
+
+    __slots__ = ("seed", "vehicle_id", "_rng", "_buf", "_pos", "_chunk")
+
+    def __init__(self, seed: int, vehicle_id: int, chunk: int = 512) -> None:
+        if seed < 0 or vehicle_id < 0:
+            raise ValueError(f"seed and vehicle_id must be >= 0, got {seed}, {vehicle_id}")
+        self.seed = int(seed)
+        self.vehicle_id = int(vehicle_id)
+        self._rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([self.seed, self.vehicle_id])))
+        self._chunk = int(chunk)
+        self._buf = np.empty(0)
+        self._pos = 0
+
+    def normals(self, n: int) -> np.ndarray:
+        """The next ``n`` standard normals of this vehicle's stream, shape (n,)."""
+        out = np.empty(n)
+        filled = 0
+        while filled < n:
+            if self._pos >= self._buf.size:
+                self._buf = self._rng.standard_normal(max(self._chunk, n - filled))
+                self._pos = 0
+            take = min(n - filled, self._buf.size - self._pos)
+            out[filled : filled + take] = self._buf[self._pos : self._pos + take]
+            self._pos += take
+            filled += take
+        return out
+
+
+def noise_stream(seed: int, vehicle_id: int) -> NoiseStream:
+    """The noise stream of vehicle ``vehicle_id`` in a run seeded with ``seed``."""
+    return NoiseStream(seed, vehicle_id)
+
+
+def initial_wind_velocity(wind: WindParams, stream: NoiseStream) -> np.ndarray:
+    """Initial velocity "solely determined by the wind" (Sec. V): one draw from the
+    stationary law of eq. 1 with a = 0, N(v_o, V_o V_o^T / (2 c0)). Consumes 2 draws."""
+    chol = np.linalg.cholesky(wind.stationary_velocity_cov() + 1e-15 * np.eye(2))
+    return wind.v_o + chol @ stream.normals(2)
+
+
+def saturate_norm(vec: np.ndarray, limit: float) -> np.ndarray:
+    """Scale each row of ``vec`` (..., 2) down so that its norm is at most ``limit``."""
+    vec = np.asarray(vec, dtype=float)
+    norm = np.linalg.norm(vec, axis=-1, keepdims=True)
+    scale = np.minimum(1.0, limit / np.maximum(norm, 1e-300))
+    return vec * scale
+
+
+def euler_maruyama_step(
+    states: np.ndarray,
+    acc_m_s2: np.ndarray,
+    dt_s: float,
+    wind: WindParams,
+    normals: np.ndarray,
+) -> np.ndarray:
+    """One Euler-Maruyama step of eq. 9 for every vehicle.
+
+    states: (n, 4); acc_m_s2: (n, 2), already within the airframe's limit;
+    normals: (n, 2) standard normals. Returns the new states (n, 4).
+    """
+    r = states[:, 0:2]
+    v = states[:, 2:4]
+    dW = normals * np.sqrt(dt_s)
+    v_next = v + (acc_m_s2 - wind.c0_per_s * (v - wind.v_o)) * dt_s + dW @ wind.V_o.T
+    r_next = r + v * dt_s
+    return np.concatenate([r_next, v_next], axis=1)
+
+
+def hold_acc_m_s2(
+    states: np.ndarray,
+    hold_pos_m: np.ndarray,
+    acc_limit_m_s2: float,
+    kp_per_s2: float = 1.0,
+    kd_per_s: float = 2.0,
+) -> np.ndarray:
+    """Acceleration of a vehicle in HOLD (PX4 "Hold": brake to zero velocity and keep
+    the position where the hold began): a critically damped PD on position, saturated.
+
+    states: (n, 4); hold_pos_m: (n, 2). Returns (n, 2).
+    """
+    acc = -kp_per_s2 * (states[:, 0:2] - hold_pos_m) - kd_per_s * states[:, 2:4]
+    return saturate_norm(acc, acc_limit_m_s2)
+
+
+class SwarmPlant:
+    """N vehicles moved by eq. 9, each with its own noise stream from ``(seed, id)``.
+
+    ``step`` integrates one control step ``dt_s`` in ``params.substeps(dt_s)`` equal
+    Euler-Maruyama sub-steps with the (saturated) acceleration held. A mock vehicle
+    process that makes the same calls for its own id moves bit-for-bit the same.
+    """
+
+    def __init__(
+        self,
+        initial_pos_m: np.ndarray,
+        params: PlantParams,
+        seed: int,
+        vehicle_ids: np.ndarray | None = None,
+        initial_vel_m_s: np.ndarray | None = None,
+    ) -> None:
+        pos = np.asarray(initial_pos_m, dtype=float)
+        if pos.ndim != 2 or pos.shape[1] != 2 or not np.all(np.isfinite(pos)):
+            raise ValueError(f"initial_pos_m must be a finite (n, 2) array, got shape {pos.shape}")
+        n = pos.shape[0]
+        self.params = params
+        self.vehicle_ids = np.arange(n) if vehicle_ids is None else np.asarray(vehicle_ids, dtype=int)
+        if self.vehicle_ids.shape != (n,):
+            raise ValueError("vehicle_ids must have one id per vehicle")
+        self.streams = [noise_stream(seed, int(i)) for i in self.vehicle_ids]
+        # Initial wind velocity is drawn first from each stream even when an initial
+        # velocity is given, so that the stream position never depends on the caller.
+        vel0 = np.array([initial_wind_velocity(params.wind, s) for s in self.streams]).reshape(n, 2)
+        if initial_vel_m_s is not None:
+            vel0 = np.asarray(initial_vel_m_s, dtype=float).reshape(n, 2)
+        self.states = np.concatenate([pos, vel0], axis=1)
+        self.time_s = 0.0
+
+    @property
+    def n(self) -> int:
+        return self.states.shape[0]
+
+    def step(self, acc_m_s2: np.ndarray, dt_s: float) -> np.ndarray:
+        """Advance every vehicle by ``dt_s`` holding ``acc_m_s2`` (n, 2). Returns the
+        acceleration actually applied (after the airframe limit), (n, 2)."""
+        acc = np.asarray(acc_m_s2, dtype=float).reshape(self.n, 2)
+        if not np.all(np.isfinite(acc)):
+            raise ValueError("acceleration must be finite")
+        acc = saturate_norm(acc, self.params.acc_limit_m_s2)
+        k = self.params.substeps(dt_s)
+        h = dt_s / k
+        noise = np.stack([s.normals(2 * k) for s in self.streams]).reshape(self.n, k, 2)
+        x = self.states
+        for j in range(k):
+            x = euler_maruyama_step(x, acc, h, self.params.wind, noise[:, j, :])
+        self.states = x
+        self.time_s += dt_s
+        return acc
