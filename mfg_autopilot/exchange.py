@@ -1,0 +1,603 @@
+"""Zenoh swarm exchange: the t = 0 state exchange (MFG), per-step neighbour gossip (HJB_d),
+membership by liveliness, and the communication count (SPEC section 6).
+
+This module is the project's only ``import zenoh``. Nothing happens at import time; a session
+is opened by :class:`SwarmExchange` (a context manager) from a :class:`ZenohSettings` value
+built once at the command line (:meth:`ZenohSettings.add_cli_args` / :meth:`from_args`).
+
+Key expressions (the contract; see docs/zenoh.md):
+
+- ``mfg/<swarm>/state/<vehicle_id>``  state payloads (:class:`StateMsg`, layout below), one put
+  per control step.
+- ``mfg/<swarm>/alive/<vehicle_id>``  liveliness token held for the session's lifetime.
+- ``mfg/<swarm>/init/<vehicle_id>``   queryable answering the vehicle's step-0 state once
+  :meth:`SwarmExchange.initial_exchange` has been called (so late joiners get earlier states).
+
+Payload v1 (56 bytes, little-endian, ``struct`` format ``<2sBBIqd4d``):
+
+====== ==== ======== =============================================================
+offset size type     field
+====== ==== ======== =============================================================
+0      2    bytes    magic ``b"MF"``
+2      1    u8       version = 1
+3      1    u8       flags = 0 (reserved)
+4      4    u32      vehicle_id (0-based instance index)
+8      8    i64      step (control step, >= 0; 0 = the t = 0 exchange)
+16     8    f64      time_s (simulated time of the state, s)
+24     32   4 x f64  state [x_m, y_m, vx_m_s, vy_m_s], paper frame = LOCAL_NED (N, E)
+====== ==== ======== =============================================================
+
+Threading: zenoh invokes callbacks on its own threads. All shared state lives behind one
+``threading.Condition``; zenoh is never called while that lock is held (a local put delivers
+to local subscribers synchronously on the calling thread). Every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import re
+import struct
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable, Iterable, Sequence
+
+import zenoh
+
+__all__ = [
+    "PAYLOAD_FORMAT",
+    "PAYLOAD_MAGIC",
+    "PAYLOAD_SIZE",
+    "PAYLOAD_VERSION",
+    "ExchangeError",
+    "ExchangeTimeout",
+    "PayloadError",
+    "StateMsg",
+    "SwarmExchange",
+    "ZenohSettings",
+    "alive_key",
+    "init_key",
+    "open_session",
+    "run_router",
+    "state_key",
+]
+
+log = logging.getLogger(__name__)
+
+PAYLOAD_MAGIC = b"MF"
+PAYLOAD_VERSION = 1
+PAYLOAD_FORMAT = "<2sBBIqd4d"
+PAYLOAD_SIZE = struct.calcsize(PAYLOAD_FORMAT)  # 56
+_PAYLOAD = struct.Struct(PAYLOAD_FORMAT)
+_U32_MAX = 2**32 - 1
+
+ZENOH_MODES = ("peer", "client", "router")
+_SWARM_RE = re.compile(r"^[A-Za-z0-9_\-.]+$")
+
+# How often initial_exchange re-queries the init queryables of vehicles still missing (s).
+INIT_QUERY_PERIOD_S = 0.25
+
+
+# --------------------------------------------------------------------------------------
+# Errors
+# --------------------------------------------------------------------------------------
+class ExchangeError(RuntimeError):
+    """A failure of the Zenoh swarm exchange (session, membership or protocol)."""
+
+
+class ExchangeTimeout(ExchangeError, TimeoutError):
+    """A wait of the exchange ran past its deadline. ``missing`` names the vehicles waited for."""
+
+    def __init__(self, message: str, missing: Iterable[int] = ()):
+        super().__init__(message)
+        self.missing: tuple[int, ...] = tuple(sorted(missing))
+
+
+class PayloadError(ExchangeError, ValueError):
+    """A state payload does not parse. ``kind`` is one of: length, magic, version, flags,
+    non_finite, range, key."""
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(f"bad state payload ({kind}): {message}")
+        self.kind = kind
+
+
+# --------------------------------------------------------------------------------------
+# Settings: built once at the command line, passed down as a value
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ZenohSettings:
+    """How to open the Zenoh session.
+
+    ``config_file`` (a zenoh json5 config) is applied first; the fields below then override it:
+    ``mode`` and ``multicast_scouting`` always, ``connect`` / ``listen`` when non-empty. With
+    no config file and no ``listen``, peers and clients listen on ``tcp/127.0.0.1:0``
+    (loopback only); routers keep zenoh's default (``tcp/[::]:7447``).
+    """
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    multicast_scouting: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in ZENOH_MODES:
+            raise ValueError(f"zenoh mode must be one of {ZENOH_MODES}, got {self.mode!r}")
+        for ep in (*self.connect, *self.listen):
+            if "/" not in ep:
+                raise ValueError(f"zenoh endpoint must look like tcp/HOST:PORT, got {ep!r}")
+
+    @staticmethod
+    def add_cli_args(parser: argparse.ArgumentParser) -> None:
+        g = parser.add_argument_group("zenoh")
+        g.add_argument("--zenoh-mode", choices=ZENOH_MODES, default="peer",
+                       help="session mode (default: peer)")
+        g.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+        g.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable; "
+                            "default for peers: tcp/127.0.0.1:0)")
+        g.add_argument("--zenoh-config", default=None, metavar="FILE",
+                       help="zenoh json5 config file, applied before the flags above")
+        g.add_argument("--zenoh-multicast-scouting", action="store_true",
+                       help="enable multicast scouting (off by default: it leaves loopback)")
+
+    @staticmethod
+    def from_args(ns: argparse.Namespace) -> "ZenohSettings":
+        return ZenohSettings(
+            mode=ns.zenoh_mode,
+            connect=tuple(ns.zenoh_connect or ()),
+            listen=tuple(ns.zenoh_listen or ()),
+            config_file=ns.zenoh_config,
+            multicast_scouting=bool(getattr(ns, "zenoh_multicast_scouting", False)),
+        )
+
+    def to_config(self) -> zenoh.Config:
+        conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        if self.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        if self.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        elif self.config_file is None and self.mode != "router":
+            conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
+        return conf
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a zenoh session; the caller must close it (``with open_session(s) as z:``)."""
+    try:
+        return zenoh.open(settings.to_config())
+    except Exception as e:  # zenoh.ZError and config errors
+        raise ExchangeError(f"cannot open zenoh session ({settings.mode}, connect="
+                            f"{list(settings.connect)}, listen={list(settings.listen)}): {e}") from e
+
+
+def run_router(settings: ZenohSettings, stop: threading.Event,
+               on_ready: Callable[[], None] | None = None) -> None:
+    """Run a zenoh session (normally ``mode="router"``) until ``stop`` is set, then close it."""
+    session = open_session(settings)
+    try:
+        if on_ready is not None:
+            on_ready()
+        while not stop.wait(0.5):
+            pass
+    finally:
+        session.close()
+
+
+# --------------------------------------------------------------------------------------
+# Key expressions
+# --------------------------------------------------------------------------------------
+def _check_swarm(swarm: str) -> str:
+    if not _SWARM_RE.match(swarm):
+        raise ValueError(f"swarm name must match {_SWARM_RE.pattern} (one key chunk), got {swarm!r}")
+    return swarm
+
+
+def state_key(swarm: str, vehicle_id: int | str) -> str:
+    return f"mfg/{_check_swarm(swarm)}/state/{vehicle_id}"
+
+
+def alive_key(swarm: str, vehicle_id: int | str) -> str:
+    return f"mfg/{_check_swarm(swarm)}/alive/{vehicle_id}"
+
+
+def init_key(swarm: str, vehicle_id: int | str) -> str:
+    return f"mfg/{_check_swarm(swarm)}/init/{vehicle_id}"
+
+
+def _id_from_key(key: str) -> int | None:
+    last = key.rsplit("/", 1)[-1]
+    return int(last) if last.isdigit() else None
+
+
+# --------------------------------------------------------------------------------------
+# Payload
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class StateMsg:
+    """One vehicle's state at one control step (payload v1, see the module docstring).
+
+    ``state`` is ``[x_m, y_m, vx_m_s, vy_m_s]`` in the paper frame (= LOCAL_NED north, east).
+    """
+
+    vehicle_id: int
+    step: int
+    time_s: float
+    state: tuple[float, float, float, float]
+
+    def encode(self) -> bytes:
+        st = tuple(float(v) for v in self.state)
+        if len(st) != 4:
+            raise PayloadError("length", f"state must have 4 entries, got {len(st)}")
+        if not (0 <= int(self.vehicle_id) <= _U32_MAX):
+            raise PayloadError("range", f"vehicle_id {self.vehicle_id} not in u32")
+        if int(self.step) < 0:
+            raise PayloadError("range", f"step {self.step} < 0")
+        if not all(math.isfinite(v) for v in (float(self.time_s), *st)):
+            raise PayloadError("non_finite", f"non-finite time/state {self.time_s} {st}")
+        return _PAYLOAD.pack(PAYLOAD_MAGIC, PAYLOAD_VERSION, 0, int(self.vehicle_id),
+                             int(self.step), float(self.time_s), *st)
+
+    @staticmethod
+    def decode(b: bytes) -> "StateMsg":
+        """Parse a payload; raise :class:`PayloadError` on anything malformed."""
+        if len(b) != PAYLOAD_SIZE:
+            raise PayloadError("length", f"{len(b)} bytes, expected {PAYLOAD_SIZE}")
+        magic, version, flags, vid, step, time_s, x, y, vx, vy = _PAYLOAD.unpack(b)
+        if magic != PAYLOAD_MAGIC:
+            raise PayloadError("magic", f"magic {magic!r}, expected {PAYLOAD_MAGIC!r}")
+        if version != PAYLOAD_VERSION:
+            raise PayloadError("version", f"version {version}, expected {PAYLOAD_VERSION}")
+        if flags != 0:
+            raise PayloadError("flags", f"flags {flags:#x}, expected 0")
+        if step < 0:
+            raise PayloadError("range", f"step {step} < 0")
+        if not all(math.isfinite(v) for v in (time_s, x, y, vx, vy)):
+            raise PayloadError("non_finite", f"time/state not finite: {time_s} {(x, y, vx, vy)}")
+        return StateMsg(vid, step, time_s, (x, y, vx, vy))
+
+    @property
+    def pos_m(self) -> tuple[float, float]:
+        return (self.state[0], self.state[1])
+
+
+def _as_state(state: Sequence[float]) -> tuple[float, float, float, float]:
+    st = tuple(float(v) for v in state)
+    if len(st) != 4:
+        raise ValueError(f"state must be [x_m, y_m, vx_m_s, vy_m_s], got {len(st)} entries")
+    return st  # type: ignore[return-value]
+
+
+# --------------------------------------------------------------------------------------
+# The exchange
+# --------------------------------------------------------------------------------------
+class SwarmExchange:
+    """One vehicle's view of the swarm over Zenoh.
+
+    Use as a context manager: ``__enter__`` opens the session, declares the liveliness token
+    ``mfg/<swarm>/alive/<vehicle_id>``, the state subscriber ``mfg/<swarm>/state/*``, the
+    liveliness subscriber (with history) and the init queryable; ``__exit__`` closes the
+    session on every exit path.
+
+    Expected vehicles are ids ``0 .. n_expected - 1`` unless ``expected_ids`` is given.
+
+    Communication count (SPEC section 6): ``states_received_by_step[step]`` is the number of
+    *distinct other vehicles' states* this vehicle received and kept at that step (all N - 1
+    at t = 0 in :meth:`initial_exchange`; in-range ones in :meth:`gossip`);
+    ``states_received_total`` is their sum. ``states_heard_total`` counts every well-formed
+    state sample that arrived from another vehicle, in range or not, duplicates included.
+    """
+
+    def __init__(self, settings: ZenohSettings, swarm: str, vehicle_id: int, n_expected: int,
+                 *, expected_ids: Iterable[int] | None = None,
+                 on_vehicle_lost: Callable[[int], None] | None = None):
+        _check_swarm(swarm)
+        if not (0 <= int(vehicle_id) <= _U32_MAX):
+            raise ValueError(f"vehicle_id {vehicle_id} not in u32")
+        if n_expected < 1:
+            raise ValueError(f"n_expected must be >= 1, got {n_expected}")
+        self.settings = settings
+        self.swarm = swarm
+        self.vehicle_id = int(vehicle_id)
+        self.expected_ids: frozenset[int] = frozenset(
+            int(i) for i in (expected_ids if expected_ids is not None else range(n_expected)))
+        if len(self.expected_ids) != n_expected:
+            raise ValueError(f"expected_ids has {len(self.expected_ids)} ids, n_expected={n_expected}")
+        self.n_expected = int(n_expected)
+
+        self._cond = threading.Condition(threading.Lock())
+        self._present: set[int] = set()
+        self._lost: set[int] = set()
+        self._lost_callbacks: list[Callable[[int], None]] = []
+        if on_vehicle_lost is not None:
+            self._lost_callbacks.append(on_vehicle_lost)
+        self._init_states: dict[int, StateMsg] = {}      # step-0 states by vehicle
+        self._by_step: dict[int, dict[int, StateMsg]] = {}  # gossip buffer: step -> sender -> msg
+        self._latest: dict[int, StateMsg] = {}           # highest-step state by sender
+        self._last_counted_step: dict[int, int] = {}     # real-time mode: no double counting
+        self._silent: set[int] = set()                   # missed a lockstep deadline
+        self._min_step_kept = 0
+        self._own_init: bytes | None = None
+
+        self.states_received_total = 0
+        self.states_received_by_step: dict[int, int] = {}
+        self.states_heard_total = 0
+        self.malformed_counts: dict[str, int] = {}
+
+        self._session: zenoh.Session | None = None
+        self._publisher = None
+        self._entities: list = []
+
+    # ---- lifecycle -------------------------------------------------------------------
+    def __enter__(self) -> "SwarmExchange":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def open(self) -> None:
+        if self._session is not None:
+            raise ExchangeError("exchange already open")
+        session = open_session(self.settings)
+        self._session = session
+        try:
+            sw, me = self.swarm, self.vehicle_id
+            self._publisher = session.declare_publisher(state_key(sw, me))
+            self._entities.append(session.declare_subscriber(state_key(sw, "*"), self._on_state_sample))
+            self._entities.append(session.declare_queryable(init_key(sw, me), self._on_init_query))
+            self._entities.append(session.liveliness().declare_subscriber(
+                alive_key(sw, "*"), self._on_alive_sample, history=True))
+            self._entities.append(session.liveliness().declare_token(alive_key(sw, me)))
+            with self._cond:
+                self._present.add(me)
+                self._cond.notify_all()
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        session, self._session = self._session, None
+        if session is None:
+            return
+        self._entities.clear()
+        self._publisher = None
+        try:
+            session.close()
+        finally:
+            if self.malformed_counts:
+                log.warning("vehicle %d: dropped malformed state payloads: %s",
+                            self.vehicle_id, dict(self.malformed_counts))
+
+    def _require_session(self) -> zenoh.Session:
+        if self._session is None:
+            raise ExchangeError("exchange is not open (use it as a context manager)")
+        return self._session
+
+    # ---- membership ------------------------------------------------------------------
+    def present(self) -> frozenset[int]:
+        """Vehicles whose liveliness token is alive (including this one)."""
+        with self._cond:
+            return frozenset(self._present)
+
+    def lost(self) -> frozenset[int]:
+        """Vehicles seen present once whose token has since disappeared (and not come back)."""
+        with self._cond:
+            return frozenset(self._lost)
+
+    def on_vehicle_lost(self, callback: Callable[[int], None]) -> None:
+        """Register ``callback(vehicle_id)``, called on a zenoh thread when a token vanishes."""
+        with self._cond:
+            self._lost_callbacks.append(callback)
+
+    def wait_present(self, ids: Iterable[int], timeout_s: float) -> frozenset[int]:
+        """Wait until every vehicle in ``ids`` is present; raise :class:`ExchangeTimeout`."""
+        want = frozenset(int(i) for i in ids)
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                missing = want - self._present
+                if not missing:
+                    return frozenset(self._present)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ExchangeTimeout(
+                        f"vehicle {self.vehicle_id}: vehicles {sorted(missing)} not present "
+                        f"after {timeout_s:.1f} s", missing)
+                self._cond.wait(left)
+
+    def _on_alive_sample(self, sample) -> None:
+        vid = _id_from_key(str(sample.key_expr))
+        if vid is None:
+            return
+        callbacks: list[Callable[[int], None]] = []
+        with self._cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._present.add(vid)
+                self._lost.discard(vid)
+            elif vid in self._present:
+                self._present.discard(vid)
+                self._lost.add(vid)
+                callbacks = list(self._lost_callbacks)
+            self._cond.notify_all()
+        if callbacks:
+            log.info("vehicle %d: vehicle %d is gone (liveliness token lost)", self.vehicle_id, vid)
+            for cb in callbacks:
+                try:
+                    cb(vid)
+                except Exception:  # a user callback must not kill the zenoh thread
+                    log.exception("on_vehicle_lost callback failed for vehicle %d", vid)
+
+    # ---- receiving -------------------------------------------------------------------
+    def _drop(self, kind: str, detail: str) -> None:
+        with self._cond:
+            n = self.malformed_counts.get(kind, 0) + 1
+            self.malformed_counts[kind] = n
+        if n == 1:  # rate limit: log the first of each kind; the counts are logged at close
+            log.warning("vehicle %d: dropped malformed state (%s): %s (further ones of this "
+                        "kind are only counted)", self.vehicle_id, kind, detail)
+
+    def _on_state_sample(self, sample) -> None:
+        try:
+            self._ingest(str(sample.key_expr), sample.payload.to_bytes())
+        except Exception:  # never let anything escape into zenoh
+            log.exception("vehicle %d: state callback failed", self.vehicle_id)
+
+    def _on_init_reply(self, reply) -> None:
+        try:
+            if reply.ok is not None:
+                self._ingest(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+        except Exception:
+            log.exception("vehicle %d: init reply callback failed", self.vehicle_id)
+
+    def _ingest(self, key: str, payload: bytes) -> None:
+        try:
+            msg = StateMsg.decode(payload)
+        except PayloadError as e:
+            self._drop(e.kind, f"{key}: {e}")
+            return
+        if _id_from_key(key) != msg.vehicle_id:
+            self._drop("key", f"{key} carries vehicle_id {msg.vehicle_id}")
+            return
+        if msg.vehicle_id == self.vehicle_id:
+            return
+        with self._cond:
+            self.states_heard_total += 1
+            if msg.step == 0:
+                self._init_states.setdefault(msg.vehicle_id, msg)
+            if msg.step >= self._min_step_kept:
+                self._by_step.setdefault(msg.step, {})[msg.vehicle_id] = msg
+            prev = self._latest.get(msg.vehicle_id)
+            if prev is None or msg.step >= prev.step:
+                self._latest[msg.vehicle_id] = msg
+            if msg.vehicle_id in self._silent and msg.step >= self._min_step_kept:
+                self._silent.discard(msg.vehicle_id)
+                log.info("vehicle %d: vehicle %d publishes again (step %d)",
+                         self.vehicle_id, msg.vehicle_id, msg.step)
+            self._cond.notify_all()
+
+    def _on_init_query(self, query) -> None:
+        payload = self._own_init
+        if payload is not None:
+            try:
+                query.reply(init_key(self.swarm, self.vehicle_id), payload)
+            except Exception:
+                log.exception("vehicle %d: init reply failed", self.vehicle_id)
+
+    # ---- sending ---------------------------------------------------------------------
+    def publish_state(self, step: int, time_s: float, state: Sequence[float]) -> None:
+        """Put this vehicle's state for ``step`` on ``mfg/<swarm>/state/<vehicle_id>``."""
+        self._require_session()
+        payload = StateMsg(self.vehicle_id, int(step), float(time_s), _as_state(state)).encode()
+        self._publisher.put(payload)
+
+    # ---- MFG: the t = 0 exchange -----------------------------------------------------
+    def initial_exchange(self, state: Sequence[float], timeout_s: float,
+                         time_s: float = 0.0) -> dict[int, StateMsg]:
+        """The MFG t = 0 exchange; returns the step-0 states of all expected vehicles (incl. own).
+
+        Publishes the own step-0 state and from then on answers queries on
+        ``mfg/<swarm>/init/<vehicle_id>`` with it. Waits until every expected vehicle is
+        present and its step-0 state is known; states published before this vehicle
+        subscribed are fetched by querying ``mfg/<swarm>/init/*`` every
+        ``INIT_QUERY_PERIOD_S`` while some are missing. Counts N - 1 states at step 0.
+        Raises :class:`ExchangeTimeout` naming the missing vehicles.
+        """
+        session = self._require_session()
+        own = StateMsg(self.vehicle_id, 0, float(time_s), _as_state(state))
+        payload = own.encode()
+        self._own_init = payload
+        self._publisher.put(payload)
+        deadline = time.monotonic() + timeout_s
+        next_query = 0.0
+        while True:
+            with self._cond:
+                others = self.expected_ids - {self.vehicle_id}
+                no_state = others - set(self._init_states)
+                absent = self.expected_ids - self._present
+                if not no_state and not absent:
+                    result = {i: self._init_states[i] for i in others}
+                    break
+                now = time.monotonic()
+                if now >= deadline:
+                    missing = no_state | absent
+                    raise ExchangeTimeout(
+                        f"vehicle {self.vehicle_id}: t=0 exchange timed out after {timeout_s:.1f} s;"
+                        f" missing vehicles {sorted(missing)} (not present: {sorted(absent)},"
+                        f" no state: {sorted(no_state)})", missing)
+                if now < next_query:
+                    self._cond.wait(min(next_query, deadline) - now)
+                    continue
+            # outside the lock: zenoh may deliver replies on this thread
+            next_query = time.monotonic() + INIT_QUERY_PERIOD_S
+            if no_state:
+                session.get(init_key(self.swarm, "*"), self._on_init_reply,
+                            target=zenoh.QueryTarget.ALL, timeout=max(INIT_QUERY_PERIOD_S, 0.1))
+        result[self.vehicle_id] = own
+        self._count(0, len(result) - 1)
+        return result
+
+    def _count(self, step: int, n: int) -> None:
+        with self._cond:
+            self.states_received_by_step[step] = self.states_received_by_step.get(step, 0) + n
+            self.states_received_total += n
+
+    # ---- HJB_d: per-step gossip ------------------------------------------------------
+    def gossip(self, step: int, time_s: float, own_state: Sequence[float], range_m: float,
+               timeout_s: float, lockstep: bool = True) -> list[StateMsg]:
+        """Publish the own state for ``step``; return other vehicles' states within ``range_m``.
+
+        Lockstep: wait until the states of ``step`` from every vehicle currently present
+        (except ones already marked silent) have arrived, or ``timeout_s`` passes; vehicles
+        still missing at the deadline are logged once and not waited for again until they
+        publish again. Real time (``lockstep=False``): no waiting, take the latest state of
+        each present sender. Only senders within ``range_m`` (Euclidean distance between
+        positions) of ``own_state`` are kept (radio range emulation); they are counted in
+        ``states_received_by_step[step]`` (real time: each sender's state counted once).
+        """
+        own = _as_state(own_state)
+        self.publish_state(step, time_s, own)
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            if lockstep:
+                while True:
+                    got = self._by_step.get(step, {})
+                    waiting = self._present - {self.vehicle_id} - self._silent - set(got)
+                    if not waiting:
+                        break
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        self._silent |= waiting
+                        log.warning("vehicle %d: no state for step %d from vehicles %s within "
+                                    "%.2f s; not waiting for them until they publish again",
+                                    self.vehicle_id, step, sorted(waiting), timeout_s)
+                        break
+                    self._cond.wait(left)
+                candidates = list(self._by_step.get(step, {}).values())
+                # keep the buffer small: drop steps older than this one
+                self._min_step_kept = max(self._min_step_kept, step)
+                for s in [s for s in self._by_step if s < step]:
+                    del self._by_step[s]
+            else:
+                candidates = [m for v, m in self._latest.items() if v in self._present]
+            kept = [m for m in candidates
+                    if math.hypot(m.state[0] - own[0], m.state[1] - own[1]) <= range_m]
+            kept.sort(key=lambda m: m.vehicle_id)
+            if lockstep:
+                n_new = len(kept)
+            else:
+                n_new = 0
+                for m in kept:
+                    if self._last_counted_step.get(m.vehicle_id, -1) < m.step:
+                        self._last_counted_step[m.vehicle_id] = m.step
+                        n_new += 1
+            self.states_received_by_step[step] = self.states_received_by_step.get(step, 0) + n_new
+            self.states_received_total += n_new
+        return kept
