@@ -1,0 +1,75 @@
+"""MAVLink bridge: the project's only pymavlink import (SPEC section 4, issue 4).
+
+Both sides use it: the controller opens a ``VehicleLink``; the mock vehicle uses
+``MavlinkPort`` and the typed messages for its wire I/O and tlog.
+"""
+
+from .errors import (
+    ArmNotConfirmed,
+    BridgeError,
+    CommandDenied,
+    CommandTimeout,
+    ConnectionStringError,
+    HeartbeatTimeout,
+    LinkClosed,
+    ModeNotConfirmed,
+    TelemetryTimeout,
+)
+from .link import COMPANION_COMPONENT_ID, VehicleLink
+from .messages import (
+    Attitude,
+    AutopilotVersion,
+    BadData,
+    CommandAck,
+    CommandInt,
+    CommandLong,
+    ExtendedSysState,
+    GlobalPositionInt,
+    Heartbeat,
+    HomePosition,
+    LocalPositionNed,
+    Message,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
+    ParamValue,
+    Received,
+    SetMode,
+    SetPositionTargetLocalNed,
+    StatusText,
+    SysStatus,
+    UnknownMessage,
+    acceleration_setpoint,
+)
+from .port import MavlinkPort
+from .px4 import (
+    ACC_ONLY_TYPE_MASK,
+    PX4_HOLD,
+    PX4_LAND,
+    PX4_OFFBOARD,
+    PX4_POSCTL,
+    MavAutopilot,
+    MavCmd,
+    MavFrame,
+    MavLandedState,
+    MavModeFlag,
+    MavParamType,
+    MavResult,
+    MavSeverity,
+    MavState,
+    MavType,
+    PositionTargetTypeMask,
+    Px4AutoSubMode,
+    Px4MainMode,
+    Px4Mode,
+)
+from .tlog import TlogWriter, read_tlog
+from .transport import Endpoint, open_transport, parse_connection_string
+
+AccelerationSetpoint = SetPositionTargetLocalNed
+"""Alias: an acceleration setpoint is a SET_POSITION_TARGET_LOCAL_NED with mask 3135."""
+
+MSG_ID_BY_NAME: dict[str, int]
+from .codec import MAVLINK_MSG_ID as MSG_ID_BY_NAME  # noqa: E402
+
+__all__ = [name for name in dir() if not name.startswith("_")]

@@ -1,0 +1,318 @@
+"""The project's only pymavlink import (SPEC section 4: pymavlink facts).
+
+``MAVLINK20=1`` is set before pymavlink is imported so that ``mavutil`` (used only
+to read tlogs back) also speaks MAVLink 2 with the common dialect; packing and
+parsing use ``pymavlink.dialects.v20.common`` directly, which is MAVLink 2 whatever
+the environment says. MAVLink 1 packets are still parsed on input.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import replace
+from typing import Callable
+
+os.environ["MAVLINK20"] = "1"  # must precede any pymavlink import (SPEC 4)
+
+from pymavlink.dialects.v20 import common as _mavlink  # noqa: E402
+
+from .messages import (  # noqa: E402
+    Attitude,
+    AutopilotVersion,
+    BadData,
+    CommandAck,
+    CommandInt,
+    CommandLong,
+    ExtendedSysState,
+    GlobalPositionInt,
+    Heartbeat,
+    HomePosition,
+    LocalPositionNed,
+    Message,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
+    ParamValue,
+    Received,
+    SetMode,
+    SetPositionTargetLocalNed,
+    StatusText,
+    SysStatus,
+    UnknownMessage,
+)
+
+__all__ = ["MavCodec", "MAVLINK_MSG_ID"]
+
+MAVLINK_MSG_ID = {
+    name[len("MAVLINK_MSG_ID_") :]: value
+    for name, value in vars(_mavlink).items()
+    if name.startswith("MAVLINK_MSG_ID_") and isinstance(value, int)
+}
+"""MAVLink message name -> numeric id (common dialect)."""
+
+
+def _clip_i(value: float, lo: int, hi: int) -> int:
+    if not math.isfinite(value):
+        return 0
+    return int(min(max(round(value), lo), hi))
+
+
+def _s(text: str | bytes) -> bytes:
+    return text if isinstance(text, bytes) else text.encode("ascii", "replace")
+
+
+def _str(value) -> str:
+    if isinstance(value, (bytes, bytearray)):
+        value = value.decode("ascii", "replace")
+    return str(value).split("\x00", 1)[0]
+
+
+# --- encoders: typed message -> pymavlink message -------------------------------------
+
+_ENCODERS: dict[type, Callable] = {
+    Heartbeat: lambda mav, m: mav.heartbeat_encode(
+        m.type, m.autopilot, m.base_mode & 0xFF, m.custom_mode & 0xFFFFFFFF, m.system_status, m.mavlink_version
+    ),
+    LocalPositionNed: lambda mav, m: mav.local_position_ned_encode(
+        m.time_boot_ms & 0xFFFFFFFF, m.x_m, m.y_m, m.z_m, m.vx_m_s, m.vy_m_s, m.vz_m_s
+    ),
+    Attitude: lambda mav, m: mav.attitude_encode(
+        m.time_boot_ms & 0xFFFFFFFF, m.roll_rad, m.pitch_rad, m.yaw_rad, m.rollspeed_rad_s, m.pitchspeed_rad_s, m.yawspeed_rad_s
+    ),
+    GlobalPositionInt: lambda mav, m: mav.global_position_int_encode(
+        m.time_boot_ms & 0xFFFFFFFF,
+        _clip_i(m.lat_deg * 1e7, -(2**31), 2**31 - 1),
+        _clip_i(m.lon_deg * 1e7, -(2**31), 2**31 - 1),
+        _clip_i(m.alt_amsl_m * 1e3, -(2**31), 2**31 - 1),
+        _clip_i(m.relative_alt_m * 1e3, -(2**31), 2**31 - 1),
+        _clip_i(m.vx_m_s * 100, -(2**15), 2**15 - 1),
+        _clip_i(m.vy_m_s * 100, -(2**15), 2**15 - 1),
+        _clip_i(m.vz_m_s * 100, -(2**15), 2**15 - 1),
+        65535 if m.heading_deg is None else _clip_i((m.heading_deg % 360.0) * 100, 0, 35999),
+    ),
+    HomePosition: lambda mav, m: mav.home_position_encode(
+        _clip_i(m.lat_deg * 1e7, -(2**31), 2**31 - 1),
+        _clip_i(m.lon_deg * 1e7, -(2**31), 2**31 - 1),
+        _clip_i(m.alt_amsl_m * 1e3, -(2**31), 2**31 - 1),
+        m.x_m,
+        m.y_m,
+        m.z_m,
+        [1.0, 0.0, 0.0, 0.0],
+        0.0,
+        0.0,
+        0.0,
+    ),
+    SysStatus: lambda mav, m: mav.sys_status_encode(
+        m.sensors_present,
+        m.sensors_enabled,
+        m.sensors_health,
+        m.load_permille,
+        _clip_i(m.voltage_battery_v * 1e3, 0, 65535),
+        -1 if m.current_battery_a is None else _clip_i(m.current_battery_a * 100, -1, 32767),
+        m.battery_remaining_pct,
+        0,
+        0,
+        0,
+        0,
+        0,
+        0,
+    ),
+    ExtendedSysState: lambda mav, m: mav.extended_sys_state_encode(m.vtol_state, m.landed_state),
+    CommandLong: lambda mav, m: mav.command_long_encode(m.target_system, m.target_component, m.command, m.confirmation, *m.params),
+    CommandInt: lambda mav, m: mav.command_int_encode(
+        m.target_system, m.target_component, m.frame, m.command, 0, 0, *m.params, m.x, m.y, m.z
+    ),
+    CommandAck: lambda mav, m: mav.command_ack_encode(
+        m.command, m.result, m.progress, m.result_param2, m.target_system, m.target_component
+    ),
+    SetMode: lambda mav, m: mav.set_mode_encode(m.target_system, m.base_mode, m.custom_mode),
+    SetPositionTargetLocalNed: lambda mav, m: mav.set_position_target_local_ned_encode(
+        m.time_boot_ms & 0xFFFFFFFF,
+        m.target_system,
+        m.target_component,
+        m.coordinate_frame,
+        m.type_mask,
+        m.x_m,
+        m.y_m,
+        m.z_m,
+        m.vx_m_s,
+        m.vy_m_s,
+        m.vz_m_s,
+        m.afx_m_s2,
+        m.afy_m_s2,
+        m.afz_m_s2,
+        m.yaw_rad,
+        m.yaw_rate_rad_s,
+    ),
+    ParamValue: lambda mav, m: mav.param_value_encode(_s(m.param_id), m.value, m.param_type, m.param_count, m.param_index),
+    ParamSet: lambda mav, m: mav.param_set_encode(m.target_system, m.target_component, _s(m.param_id), m.value, m.param_type),
+    ParamRequestRead: lambda mav, m: mav.param_request_read_encode(
+        m.target_system, m.target_component, _s(m.param_id), m.param_index
+    ),
+    ParamRequestList: lambda mav, m: mav.param_request_list_encode(m.target_system, m.target_component),
+    StatusText: lambda mav, m: mav.statustext_encode(m.severity, _s(m.text[:50])),
+    AutopilotVersion: lambda mav, m: mav.autopilot_version_encode(
+        m.capabilities, m.flight_sw_version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, m.uid
+    ),
+}
+
+
+# --- decoders: pymavlink message -> typed message -------------------------------------
+
+_DECODERS: dict[str, Callable] = {
+    "HEARTBEAT": lambda p: Heartbeat(p.type, p.autopilot, p.base_mode, p.custom_mode, p.system_status, p.mavlink_version),
+    "LOCAL_POSITION_NED": lambda p: LocalPositionNed(p.time_boot_ms, p.x, p.y, p.z, p.vx, p.vy, p.vz),
+    "ATTITUDE": lambda p: Attitude(p.time_boot_ms, p.roll, p.pitch, p.yaw, p.rollspeed, p.pitchspeed, p.yawspeed),
+    "GLOBAL_POSITION_INT": lambda p: GlobalPositionInt(
+        p.time_boot_ms,
+        p.lat * 1e-7,
+        p.lon * 1e-7,
+        p.alt * 1e-3,
+        p.relative_alt * 1e-3,
+        p.vx * 1e-2,
+        p.vy * 1e-2,
+        p.vz * 1e-2,
+        None if p.hdg == 65535 else p.hdg * 1e-2,
+    ),
+    "HOME_POSITION": lambda p: HomePosition(p.latitude * 1e-7, p.longitude * 1e-7, p.altitude * 1e-3, p.x, p.y, p.z),
+    "SYS_STATUS": lambda p: SysStatus(
+        p.onboard_control_sensors_present,
+        p.onboard_control_sensors_enabled,
+        p.onboard_control_sensors_health,
+        p.load,
+        p.voltage_battery * 1e-3,
+        None if p.current_battery == -1 else p.current_battery * 1e-2,
+        p.battery_remaining,
+    ),
+    "EXTENDED_SYS_STATE": lambda p: ExtendedSysState(p.vtol_state, p.landed_state),
+    "COMMAND_LONG": lambda p: CommandLong(
+        p.target_system,
+        p.target_component,
+        p.command,
+        (p.param1, p.param2, p.param3, p.param4, p.param5, p.param6, p.param7),
+        p.confirmation,
+    ),
+    "COMMAND_INT": lambda p: CommandInt(
+        p.target_system, p.target_component, p.command, p.frame, (p.param1, p.param2, p.param3, p.param4), p.x, p.y, p.z
+    ),
+    "COMMAND_ACK": lambda p: CommandAck(
+        p.command, p.result, p.target_system, p.target_component, p.progress, p.result_param2
+    ),
+    "SET_MODE": lambda p: SetMode(p.target_system, p.base_mode, p.custom_mode),
+    "SET_POSITION_TARGET_LOCAL_NED": lambda p: SetPositionTargetLocalNed(
+        p.time_boot_ms,
+        p.target_system,
+        p.target_component,
+        p.coordinate_frame,
+        p.type_mask,
+        p.x,
+        p.y,
+        p.z,
+        p.vx,
+        p.vy,
+        p.vz,
+        p.afx,
+        p.afy,
+        p.afz,
+        p.yaw,
+        p.yaw_rate,
+    ),
+    "PARAM_VALUE": lambda p: ParamValue(_str(p.param_id), p.param_value, p.param_type, p.param_count, p.param_index),
+    "PARAM_SET": lambda p: ParamSet(p.target_system, p.target_component, _str(p.param_id), p.param_value, p.param_type),
+    "PARAM_REQUEST_READ": lambda p: ParamRequestRead(p.target_system, p.target_component, _str(p.param_id), p.param_index),
+    "PARAM_REQUEST_LIST": lambda p: ParamRequestList(p.target_system, p.target_component),
+    "STATUSTEXT": lambda p: StatusText(p.severity, _str(p.text)),
+    "AUTOPILOT_VERSION": lambda p: AutopilotVersion(p.capabilities, p.flight_sw_version, p.uid),
+}
+
+
+class MavCodec:
+    """Packs typed messages as MAVLink 2 packets from one (system, component) and parses
+    a byte stream into ``Received`` messages. Not thread-safe: use one per stream
+    direction, or guard it (``MavlinkPort`` does)."""
+
+    def __init__(self, source_system: int, source_component: int) -> None:
+        if not (0 < source_system < 256 and 0 <= source_component < 256):
+            raise ValueError(f"bad MAVLink source ids {source_system}/{source_component}")
+        self.source_system = source_system
+        self.source_component = source_component
+        self._tx = _mavlink.MAVLink(None, source_system, source_component)
+        self._rx = _mavlink.MAVLink(None, 0, 0)
+        self._rx.robust_parsing = True
+
+    def encode(self, msg: Message) -> bytes:
+        """One MAVLink 2 packet carrying ``msg`` (sequence number advances)."""
+        try:
+            enc = _ENCODERS[type(msg)]
+        except KeyError:
+            raise TypeError(f"cannot encode {type(msg).__name__}") from None
+        packet = bytes(enc(self._tx, msg).pack(self._tx))
+        self._tx.seq = (self._tx.seq + 1) % 256
+        return packet
+
+    def reset_parser(self) -> int:
+        """Drop any partial packet held by the parser; returns how many bytes were dropped."""
+        dropped = len(self._rx.buf) - self._rx.buf_index
+        self._rx.buf = bytearray()
+        self._rx.buf_index = 0
+        self._rx.expected_length = _mavlink.HEADER_LEN_V1 + 2
+        self._rx.have_prefix_error = False
+        return max(0, dropped)
+
+    def decode_datagram(self, data: bytes) -> list[Received]:
+        """Parse one UDP datagram, which holds whole packets only: a trailing partial
+        packet is reported as ``BadData`` instead of swallowing the next datagram."""
+        out = self.decode(data)
+        dropped = self.reset_parser()
+        if dropped:
+            out.append(Received(BadData("truncated packet", dropped, time.monotonic()), 0, 0, b""))
+        return out
+
+    def decode(self, data: bytes) -> list[Received]:
+        """Parse ``data`` (any chunking; state is kept between calls). Bad bytes come back
+        as ``BadData`` messages, never as an exception."""
+        now = time.monotonic()
+        out: list[Received] = []
+        try:
+            parsed = self._rx.parse_buffer(data) or []
+        except Exception as exc:  # pymavlink raises on some malformed input even when robust
+            self.reset_parser()
+            return [Received(BadData(f"parser error: {exc}", len(data), now), 0, 0, b"")]
+        for p in parsed:
+            out.append(self._typed(p, now))
+        return out
+
+    @staticmethod
+    def _typed(p, now: float) -> Received:
+        name = p.get_type()
+        if name == "BAD_DATA":
+            return Received(BadData(str(p.reason), len(p.data), now), 0, 0, bytes(p.data))
+        raw = bytes(p.get_msgbuf())
+        src_sys, src_comp = p.get_srcSystem(), p.get_srcComponent()
+        dec = _DECODERS.get(name)
+        if dec is None:
+            return Received(UnknownMessage(p.get_msgId(), name, now), src_sys, src_comp, raw)
+        try:
+            msg = dec(p)
+        except Exception as exc:
+            return Received(BadData(f"cannot decode {name}: {exc}", len(raw), now), src_sys, src_comp, raw)
+        return Received(replace(msg, received_monotonic_s=now), src_sys, src_comp, raw)
+
+
+def read_tlog_raw(path: str):
+    """Yield ``(timestamp_s, Received)`` for every packet of a tlog, read with pymavlink's
+    own ``mavutil.mavlink_connection`` (proves the file is readable by pymavlink tools)."""
+    from pymavlink import mavutil
+
+    mlog = mavutil.mavlink_connection(str(path), dialect="common")
+    try:
+        while True:
+            p = mlog.recv_match()
+            if p is None:
+                return
+            ts = getattr(p, "_timestamp", math.nan)
+            yield ts, MavCodec._typed(p, math.nan)
+    finally:
+        mlog.close()

@@ -1,0 +1,483 @@
+"""The controller side of the bridge: a link to one vehicle (issue 4; SPEC section 4).
+
+``VehicleLink`` owns a ``MavlinkPort``, a receive thread that keeps the latest typed
+telemetry of its target vehicle, a 1 Hz companion HEARTBEAT, and an optional thread
+streaming a held acceleration setpoint (PX4 needs >= 2 Hz before and during OFFBOARD).
+Commands follow the MAVLink command protocol: COMMAND_LONG, retransmitted with an
+incremented ``confirmation`` until a COMMAND_ACK arrives or ``timeout_s`` passes; mode
+and arming changes are then confirmed by the vehicle's HEARTBEAT. Every wait takes
+``timeout_s`` and raises a typed ``BridgeError``.
+
+Setpoints only ever go to ``target_system``/``target_component``: no method takes
+another target, and ``target_system`` 0 (broadcast) is refused at open.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from typing import Callable, TypeVar
+
+from .errors import (
+    ArmNotConfirmed,
+    BridgeError,
+    CommandDenied,
+    CommandTimeout,
+    HeartbeatTimeout,
+    LinkClosed,
+    ModeNotConfirmed,
+    TelemetryTimeout,
+)
+from .messages import (
+    CommandAck,
+    CommandLong,
+    Heartbeat,
+    LocalPositionNed,
+    Message,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
+    ParamValue,
+    Received,
+    SetPositionTargetLocalNed,
+    acceleration_setpoint,
+)
+from .port import MavlinkPort
+from .px4 import (
+    PX4_HOLD,
+    PX4_LAND,
+    PX4_OFFBOARD,
+    MavAutopilot,
+    MavCmd,
+    MavModeFlag,
+    MavParamType,
+    MavResult,
+    MavState,
+    MavType,
+    Px4Mode,
+)
+from .tlog import TlogWriter
+
+__all__ = ["VehicleLink", "COMPANION_COMPONENT_ID"]
+
+log = logging.getLogger(__name__)
+
+COMPANION_COMPONENT_ID = 191
+"""MAV_COMP_ID_ONBOARD_COMPUTER: the companion computer's component id (issue 4)."""
+
+M = TypeVar("M", bound=Message)
+
+
+class VehicleLink:
+    """A MAVLink link from a companion computer to one vehicle (system ``target_system``)."""
+
+    def __init__(
+        self,
+        port: MavlinkPort,
+        target_system: int,
+        target_component: int = 1,
+        tlog: TlogWriter | None = None,
+        heartbeat_rate_hz: float = 1.0,
+        command_retry_interval_s: float = 0.5,
+    ) -> None:
+        if not (1 <= target_system <= 255):
+            raise ValueError(f"target_system must be 1..255 (never broadcast 0), got {target_system}")
+        if not (0 <= target_component <= 255):
+            raise ValueError(f"target_component must be 0..255, got {target_component}")
+        self.port = port
+        self.target_system = int(target_system)
+        self.target_component = int(target_component)
+        self._tlog = tlog
+        self._retry_s = command_retry_interval_s
+        self._cond = threading.Condition()
+        self._latest: dict[type, Message] = {}
+        self._acks: collections.deque[CommandAck] = collections.deque(maxlen=64)
+        self._params: dict[str, ParamValue] = {}
+        self._closed = threading.Event()
+        self._t0 = time.monotonic()
+        self.n_ignored_other_system = 0
+        self.n_bad = 0
+        self._held: SetPositionTargetLocalNed | None = None
+        self._held_time_boot_ms: int | None = None
+        self._stream_stop: threading.Event | None = None
+        self._stream_thread: threading.Thread | None = None
+        self._rx_thread = threading.Thread(target=self._rx_loop, name=f"mav-rx-{target_system}", daemon=True)
+        self._rx_thread.start()
+        self._hb_period_s = 1.0 / heartbeat_rate_hz if heartbeat_rate_hz > 0 else math.inf
+        self._hb_thread = threading.Thread(target=self._hb_loop, name=f"mav-hb-{target_system}", daemon=True)
+        self._hb_thread.start()
+
+    # ------------------------------------------------------------------ opening / closing
+    @classmethod
+    def open(
+        cls,
+        url: str,
+        target_system: int = 1,
+        target_component: int = 1,
+        source_system: int = 1,
+        source_component: int = COMPANION_COMPONENT_ID,
+        tlog_path: str | None = None,
+        heartbeat_rate_hz: float = 1.0,
+    ) -> "VehicleLink":
+        """Open ``url`` (``udpin:127.0.0.1:14540``, ``udpout:``, ``tcp:``, ``/dev/ttyUSB0:921600``)."""
+        tlog = TlogWriter(tlog_path) if tlog_path else None
+        try:
+            port = MavlinkPort.open(url, source_system, source_component, tlog)
+        except BaseException:
+            if tlog is not None:
+                tlog.close()
+            raise
+        return cls(port, target_system, target_component, tlog, heartbeat_rate_hz)
+
+    def close(self) -> None:
+        """Stop the threads, close the transport and the tlog. Idempotent."""
+        if self._closed.is_set():
+            return
+        self.stop_setpoint_stream()
+        self._closed.set()
+        with self._cond:
+            self._cond.notify_all()
+        self._hb_thread.join(timeout=2.0)
+        self._rx_thread.join(timeout=2.0)
+        self.port.close()
+        if self._tlog is not None:
+            self._tlog.close()
+
+    def __enter__(self) -> "VehicleLink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ threads
+    def _rx_loop(self) -> None:
+        while not self._closed.is_set():
+            try:
+                received = self.port.recv(0.1)
+            except (OSError, ValueError):
+                if self._closed.is_set():
+                    return
+                log.exception("receive failed on %s", self.port.name)
+                time.sleep(0.1)
+                continue
+            for r in received:
+                self._on_message(r)
+
+    def _on_message(self, r: Received) -> None:
+        msg = r.msg
+        if r.src_system != self.target_system:
+            self.n_ignored_other_system += 1
+            return
+        if isinstance(msg, Heartbeat) and r.src_component != self.target_component and self.target_component != 0:
+            return  # e.g. a camera or gimbal of the same vehicle
+        with self._cond:
+            if isinstance(msg, CommandAck):
+                if msg.target_system in (0, self.port.source_system) and msg.target_component in (0, self.port.source_component):
+                    self._acks.append(msg)
+            elif isinstance(msg, ParamValue):
+                self._params[msg.param_id] = msg
+            self._latest[type(msg)] = msg
+            self._cond.notify_all()
+
+    def _hb_loop(self) -> None:
+        next_t = time.monotonic()
+        while not self._closed.wait(max(0.0, min(next_t - time.monotonic(), 0.5))):
+            now = time.monotonic()
+            if now >= next_t:
+                self._send(
+                    Heartbeat(
+                        type=MavType.ONBOARD_CONTROLLER,
+                        autopilot=MavAutopilot.INVALID,
+                        base_mode=0,
+                        custom_mode=0,
+                        system_status=MavState.ACTIVE,
+                    )
+                )
+                next_t = now + self._hb_period_s
+            if self._tlog is not None:
+                self._tlog.maybe_flush()
+
+    def _send(self, msg: Message) -> None:
+        if self._closed.is_set():
+            raise LinkClosed(f"link to system {self.target_system} is closed")
+        self.port.send(msg)
+
+    # ------------------------------------------------------------------ telemetry
+    def latest(self, msg_type: type[M]) -> M | None:
+        """The latest message of ``msg_type`` from the target system, or None."""
+        with self._cond:
+            return self._latest.get(msg_type)  # type: ignore[return-value]
+
+    def latest_heartbeat(self) -> Heartbeat | None:
+        return self.latest(Heartbeat)
+
+    def latest_local_position(self) -> LocalPositionNed | None:
+        """Latest LOCAL_POSITION_NED (``received_monotonic_s`` = its arrival time)."""
+        return self.latest(LocalPositionNed)
+
+    def _age_s(self, msg_type: type) -> float:
+        m = self.latest(msg_type)
+        return math.inf if m is None else time.monotonic() - m.received_monotonic_s
+
+    def heartbeat_age_s(self) -> float:
+        """Seconds since the vehicle's last HEARTBEAT (inf if none yet)."""
+        return self._age_s(Heartbeat)
+
+    def telemetry_age_s(self) -> float:
+        """Seconds since the last LOCAL_POSITION_NED (inf if none yet)."""
+        return self._age_s(LocalPositionNed)
+
+    def wait_for(self, msg_type: type[M], predicate: Callable[[M], bool], timeout_s: float) -> M | None:
+        """Wait until the latest ``msg_type`` satisfies ``predicate``; None on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                m = self._latest.get(msg_type)
+                if m is not None and predicate(m):  # type: ignore[arg-type]
+                    return m  # type: ignore[return-value]
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                if self._closed.is_set():
+                    raise LinkClosed(f"link to system {self.target_system} closed while waiting for {msg_type.MSG_NAME}")
+                self._cond.wait(min(remaining, 0.2))
+
+    def wait_heartbeat(self, timeout_s: float, newer_than_monotonic_s: float | None = None) -> Heartbeat:
+        """The vehicle's HEARTBEAT (the latest one if already seen, or the first received
+        after ``newer_than_monotonic_s``). Raises HeartbeatTimeout."""
+        after = -math.inf if newer_than_monotonic_s is None else newer_than_monotonic_s
+        hb = self.wait_for(Heartbeat, lambda h: h.received_monotonic_s > after, timeout_s)
+        if hb is None:
+            raise HeartbeatTimeout(self.target_system, self.target_component, timeout_s)
+        return hb
+
+    def wait_local_position(self, after_time_boot_ms: int | None, timeout_s: float) -> LocalPositionNed:
+        """The first LOCAL_POSITION_NED with ``time_boot_ms > after_time_boot_ms`` (any if None).
+        Raises TelemetryTimeout."""
+        after = -1 if after_time_boot_ms is None else after_time_boot_ms
+        m = self.wait_for(LocalPositionNed, lambda p: p.time_boot_ms > after, timeout_s)
+        if m is None:
+            raise TelemetryTimeout("LOCAL_POSITION_NED" + ("" if after_time_boot_ms is None else f" after {after} ms"), self.target_system, timeout_s)
+        return m
+
+    # ------------------------------------------------------------------ setpoints
+    def time_boot_ms(self) -> int:
+        """Milliseconds since this link was opened (the default setpoint timestamp)."""
+        return int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
+
+    def send_acc_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> None:
+        """One SET_POSITION_TARGET_LOCAL_NED, LOCAL_NED frame, acceleration-only type_mask
+        3135, to the target vehicle only. Raises ValueError for non-finite input."""
+        sp = acceleration_setpoint(
+            self.target_system, self.target_component, acc_ned_m_s2, self.time_boot_ms() if time_boot_ms is None else time_boot_ms
+        )
+        self._send(sp)
+
+    def set_held_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> None:
+        """The acceleration the setpoint stream repeats (stamped ``time_boot_ms``, or the
+        link clock if None). Raises ValueError for non-finite input."""
+        sp = acceleration_setpoint(self.target_system, self.target_component, acc_ned_m_s2, 0 if time_boot_ms is None else time_boot_ms)
+        with self._cond:
+            self._held = sp
+            self._held_time_boot_ms = time_boot_ms
+
+    def start_setpoint_stream(self, rate_hz: float = 20.0, acc_ned_m_s2: tuple[float, float, float] | None = None) -> None:
+        """Stream the held acceleration setpoint at ``rate_hz`` from a thread (PX4 needs
+        >= 2 Hz for > 1 s before OFFBOARD is accepted, and keeps needing it)."""
+        if not (rate_hz > 0):
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        if acc_ned_m_s2 is not None or self._held is None:
+            self.set_held_setpoint(acc_ned_m_s2 or (0.0, 0.0, 0.0))
+        self.stop_setpoint_stream()
+        stop = threading.Event()
+        self._stream_stop = stop
+        period = 1.0 / rate_hz
+
+        def run() -> None:
+            next_t = time.monotonic()
+            while not stop.is_set() and not self._closed.is_set():
+                with self._cond:
+                    sp, t_ms = self._held, self._held_time_boot_ms
+                if sp is not None:
+                    sp_t = sp if t_ms is not None else SetPositionTargetLocalNed(**{**sp.__dict__, "time_boot_ms": self.time_boot_ms()})
+                    try:
+                        self._send(sp_t)
+                    except LinkClosed:
+                        return
+                next_t += period
+                stop.wait(max(0.0, next_t - time.monotonic()))
+
+        self._stream_thread = threading.Thread(target=run, name=f"mav-sp-{self.target_system}", daemon=True)
+        self._stream_thread.start()
+
+    def stop_setpoint_stream(self) -> None:
+        if self._stream_stop is not None:
+            self._stream_stop.set()
+        if self._stream_thread is not None:
+            self._stream_thread.join(timeout=2.0)
+        self._stream_stop = None
+        self._stream_thread = None
+
+    @property
+    def streaming(self) -> bool:
+        return self._stream_thread is not None and self._stream_thread.is_alive()
+
+    # ------------------------------------------------------------------ commands
+    def command_long(self, command: int, params: tuple[float, ...], timeout_s: float) -> CommandAck:
+        """Send COMMAND_LONG and wait for its COMMAND_ACK (retransmitting every
+        ``command_retry_interval_s``; IN_PROGRESS keeps waiting). Raises CommandTimeout,
+        or CommandDenied for any result other than ACCEPTED."""
+        p = tuple(float(x) for x in params) + (0.0,) * (7 - len(params))
+        deadline = time.monotonic() + timeout_s
+        confirmation = 0
+        with self._cond:
+            self._acks.clear()
+        while True:
+            self._send(CommandLong(self.target_system, self.target_component, int(command), p[:7], confirmation))
+            retry_at = min(deadline, time.monotonic() + self._retry_s)
+            with self._cond:
+                while True:
+                    for i, ack in enumerate(self._acks):
+                        if ack.command == command:
+                            del self._acks[i]
+                            if ack.result == MavResult.IN_PROGRESS:
+                                retry_at = deadline  # stop retransmitting, wait for the final ack
+                                break
+                            if ack.result != MavResult.ACCEPTED:
+                                raise CommandDenied(int(command), int(ack.result), self.target_system)
+                            return ack
+                    else:
+                        remaining = retry_at - time.monotonic()
+                        if remaining <= 0:
+                            break
+                        if self._closed.is_set():
+                            raise LinkClosed(f"link to system {self.target_system} closed while waiting for COMMAND_ACK")
+                        self._cond.wait(min(remaining, 0.2))
+            if time.monotonic() >= deadline:
+                raise CommandTimeout(int(command), self.target_system, timeout_s)
+            confirmation = min(confirmation + 1, 255)
+
+    def _base_mode(self) -> int:
+        hb = self.latest_heartbeat()
+        armed = hb is not None and hb.armed
+        return int(MavModeFlag.CUSTOM_MODE_ENABLED | (MavModeFlag.SAFETY_ARMED if armed else 0))
+
+    def set_mode(self, mode: Px4Mode, timeout_s: float) -> Heartbeat:
+        """DO_SET_MODE(base, main, sub), wait for ACCEPTED, then for a HEARTBEAT in ``mode``.
+        Raises CommandDenied, CommandTimeout or ModeNotConfirmed."""
+        deadline = time.monotonic() + timeout_s
+        sent_at = time.monotonic()
+        self.command_long(MavCmd.DO_SET_MODE, (self._base_mode(), mode.main_mode, mode.sub_mode), timeout_s)
+        hb = self.wait_for(
+            Heartbeat,
+            lambda h: h.received_monotonic_s > sent_at and h.px4_mode == mode,
+            max(0.0, deadline - time.monotonic()),
+        )
+        if hb is None:
+            last = self.latest_heartbeat()
+            raise ModeNotConfirmed(mode.name, None if last is None else last.px4_mode.name, timeout_s)
+        return hb
+
+    def start_offboard(self, timeout_s: float) -> Heartbeat:
+        """Enter OFFBOARD (PX4: DO_SET_MODE base|CUSTOM, main 6). Precondition: setpoints
+        are streaming (``start_setpoint_stream``) -- PX4 refuses otherwise and this raises
+        CommandDenied."""
+        if not self.streaming:
+            log.warning("start_offboard without a setpoint stream: PX4 will refuse unless setpoints are sent")
+        return self.set_mode(PX4_OFFBOARD, timeout_s)
+
+    def hold(self, timeout_s: float) -> Heartbeat:
+        """PX4 Hold (AUTO.LOITER: main 4, sub 3)."""
+        return self.set_mode(PX4_HOLD, timeout_s)
+
+    def land(self, timeout_s: float) -> Heartbeat:
+        """PX4 Land (AUTO.LAND: main 4, sub 6)."""
+        return self.set_mode(PX4_LAND, timeout_s)
+
+    def _arm_disarm(self, arm: bool, timeout_s: float, force: bool) -> Heartbeat:
+        deadline = time.monotonic() + timeout_s
+        sent_at = time.monotonic()
+        self.command_long(MavCmd.COMPONENT_ARM_DISARM, (1.0 if arm else 0.0, 21196.0 if force else 0.0), timeout_s)
+        hb = self.wait_for(
+            Heartbeat, lambda h: h.received_monotonic_s > sent_at and h.armed == arm, max(0.0, deadline - time.monotonic())
+        )
+        if hb is None:
+            raise ArmNotConfirmed(arm, timeout_s)
+        return hb
+
+    def arm(self, timeout_s: float) -> Heartbeat:
+        """COMMAND_LONG 400 (param1 = 1), ACK, then a HEARTBEAT with SAFETY_ARMED.
+        Raises CommandDenied (e.g. preflight checks failed), CommandTimeout, ArmNotConfirmed."""
+        return self._arm_disarm(True, timeout_s, force=False)
+
+    def disarm(self, timeout_s: float, force: bool = False) -> Heartbeat:
+        """COMMAND_LONG 400 (param1 = 0; param2 = 21196 if ``force``)."""
+        return self._arm_disarm(False, timeout_s, force=force)
+
+    def set_message_interval(self, msg_id: int, interval_s: float, timeout_s: float) -> CommandAck:
+        """MAV_CMD_SET_MESSAGE_INTERVAL (511); ``interval_s`` <= 0 disables the message... -1 in us."""
+        interval_us = -1.0 if interval_s < 0 else interval_s * 1e6
+        return self.command_long(MavCmd.SET_MESSAGE_INTERVAL, (msg_id, interval_us), timeout_s)
+
+    def request_message(self, msg_id: int, timeout_s: float) -> CommandAck:
+        """MAV_CMD_REQUEST_MESSAGE (512)."""
+        return self.command_long(MavCmd.REQUEST_MESSAGE, (msg_id,), timeout_s)
+
+    # ------------------------------------------------------------------ parameters
+    def get_param(self, name: str, timeout_s: float) -> float:
+        """PARAM_REQUEST_READ by name, wait for its PARAM_VALUE. Raises TelemetryTimeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            self._params.pop(name, None)
+        while True:
+            self._send(ParamRequestRead(self.target_system, self.target_component, name, -1))
+            pv = self._wait_param(name, min(deadline, time.monotonic() + self._retry_s))
+            if pv is not None:
+                return pv.value
+            if time.monotonic() >= deadline:
+                raise TelemetryTimeout(f"PARAM_VALUE {name}", self.target_system, timeout_s)
+
+    def set_param(self, name: str, value: float, timeout_s: float) -> float:
+        """PARAM_SET, wait for the PARAM_VALUE echo; returns the value the vehicle kept
+        (which differs from ``value`` if it refused it). Raises TelemetryTimeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            self._params.pop(name, None)
+        while True:
+            self._send(ParamSet(self.target_system, self.target_component, name, float(value), MavParamType.REAL32))
+            pv = self._wait_param(name, min(deadline, time.monotonic() + self._retry_s))
+            if pv is not None:
+                return pv.value
+            if time.monotonic() >= deadline:
+                raise TelemetryTimeout(f"PARAM_VALUE {name} (after PARAM_SET)", self.target_system, timeout_s)
+
+    def list_params(self, timeout_s: float) -> dict[str, float]:
+        """PARAM_REQUEST_LIST; returns all parameters once ``param_count`` have arrived."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            self._params.clear()
+        self._send(ParamRequestList(self.target_system, self.target_component))
+        with self._cond:
+            while True:
+                if self._params:
+                    count = next(iter(self._params.values())).param_count
+                    if len(self._params) >= count:
+                        return {k: v.value for k, v in self._params.items()}
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TelemetryTimeout(f"PARAM_VALUE list ({len(self._params)} received)", self.target_system, timeout_s)
+                self._cond.wait(min(remaining, 0.2))
+
+    def _wait_param(self, name: str, until: float) -> ParamValue | None:
+        with self._cond:
+            while True:
+                pv = self._params.get(name)
+                if pv is not None:
+                    return pv
+                remaining = until - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(min(remaining, 0.2))
