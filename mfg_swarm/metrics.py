@@ -1,0 +1,85 @@
+"""Mission metrics (paper Sec. V, SPEC section 6), computed from flown trajectories.
+
+All functions are pure. Trajectories: positions pos_m (T+1, N, 2) at the control
+instants t_k = k dt, velocities vel_m_s (T+1, N, 2), applied accelerations
+acc_m_s2 (T, N, 2) held over [t_k, t_k+1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["COLLISION_DISTANCE_M", "ARRIVAL_TOLERANCE_M", "segment_min_distance", "collisions", "arrivals", "motion_energy"]
+
+COLLISION_DISTANCE_M = 0.1
+ARRIVAL_TOLERANCE_M = 1.0
+
+
+def segment_min_distance(d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
+    """Closest approach of pairs whose relative position moves linearly from d0 to d1
+    (rows (p, 2)) over one step: min over tau in [0, 1] of |d0 + tau (d1 - d0)|. (p,)."""
+    dd = d1 - d0
+    den = np.einsum("pd,pd->p", dd, dd)
+    tau = np.where(den > 0, -np.einsum("pd,pd->p", d0, dd) / np.maximum(den, 1e-300), 0.0)
+    tau = np.clip(tau, 0.0, 1.0)
+    closest = d0 + tau[:, None] * dd
+    return np.linalg.norm(closest, axis=1)
+
+
+def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dict:
+    """Collisions checked along each step's straight position segment (SPEC 6).
+
+    Returns {"collision_pairs": distinct pairs ever closer than radius,
+    "collision_pair_steps": (pair, step) count, "min_pair_distance_m": the smallest
+    distance between any two UAVs over all segments, "pairs": sorted list of (i, j)}.
+    Uses a k-d tree: a pair can only come within r during a step if it starts
+    within r + (max displacement of any UAV) * 2.
+    """
+    T1, N, _ = pos_m.shape
+    if N < 2:
+        return {"collision_pairs": 0, "collision_pair_steps": 0, "min_pair_distance_m": float("inf"), "pairs": []}
+    pairs_hit: set[tuple[int, int]] = set()
+    pair_steps = 0
+    dmin = np.inf
+    for k in range(max(T1 - 1, 1)):
+        p0 = pos_m[k]
+        p1 = pos_m[k + 1] if T1 > 1 else p0
+        disp = float(np.max(np.linalg.norm(p1 - p0, axis=1)))
+        tree = cKDTree(p0)
+        nn, _ = tree.query(p0, k=2)
+        step_nn = float(np.min(nn[:, 1]))
+        search = max(radius_m, step_nn) + 2.0 * disp + 1e-9
+        cand = tree.query_pairs(search, output_type="ndarray")
+        if cand.size == 0:
+            continue
+        dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
+        dmin = min(dmin, float(dseg.min()))
+        hit = dseg < radius_m
+        if np.any(hit):
+            pair_steps += int(hit.sum())
+            pairs_hit.update(map(tuple, np.sort(cand[hit], axis=1).tolist()))
+    return {"collision_pairs": len(pairs_hit), "collision_pair_steps": pair_steps,
+            "min_pair_distance_m": dmin, "pairs": sorted(pairs_hit)}
+
+
+def arrivals(pos_m: np.ndarray, dest_m: np.ndarray, dt_s: float, tol_m: float = ARRIVAL_TOLERANCE_M) -> tuple[np.ndarray, np.ndarray]:
+    """Per UAV: arrived (within tol of its destination at the end and from some time
+    on), and the arrival time, the first instant from which it stays within tol
+    (NaN if not arrived). Returns (arrived (N,) bool, time_s (N,))."""
+    inside = np.linalg.norm(pos_m - dest_m[None], axis=2) <= tol_m      # (T+1, N)
+    T1, N = inside.shape
+    arrived = inside[-1].copy()
+    # index of the first sample of the final run of True values
+    outside_rev = ~inside[::-1]
+    last_out_from_end = np.where(outside_rev.any(axis=0), np.argmax(outside_rev, axis=0), T1)
+    first_in = T1 - last_out_from_end
+    time_s = np.where(arrived, first_in * dt_s, np.nan)
+    return arrived, time_s
+
+
+def motion_energy(vel_m_s: np.ndarray, acc_m_s2: np.ndarray, dt_s: float) -> np.ndarray:
+    """Motion energy per UAV: sum over steps of (|v|^2 + |a|^2) dt (Sec. V), (N,)."""
+    T = acc_m_s2.shape[0]
+    v = vel_m_s[:T]
+    return (np.sum(v * v, axis=(0, 2)) + np.sum(acc_m_s2 * acc_m_s2, axis=(0, 2))) * dt_s

@@ -1,0 +1,57 @@
+"""Metric bookkeeping on hand-made trajectories (SPEC section 6)."""
+
+import numpy as np
+
+from mfg_autopilot.params import radio_range_m
+from mfg_swarm.metrics import arrivals, collisions, motion_energy, segment_min_distance
+
+
+def test_pair_passing_through_each_other_between_samples_is_a_collision():
+    # Two UAVs swap places in one step: 2 m apart at both samples, 0 m mid-step.
+    pos = np.array([[[0.0, 0.0], [2.0, 0.0]], [[2.0, 0.0], [0.0, 0.0]]])
+    col = collisions(pos)
+    assert col["collision_pairs"] == 1 and col["collision_pair_steps"] == 1
+    assert col["min_pair_distance_m"] < 1e-12
+    assert col["pairs"] == [(0, 1)]
+
+
+def test_near_miss_is_not_a_collision_and_min_distance_is_exact():
+    # UAV 1 flies past UAV 0 at a lateral offset of 0.15 m.
+    pos = np.array([[[0.0, 0.0], [-5.0, 0.15], [50.0, 50.0]], [[0.0, 0.0], [5.0, 0.15], [50.0, 50.0]]])
+    col = collisions(pos)
+    assert col["collision_pairs"] == 0
+    np.testing.assert_allclose(col["min_pair_distance_m"], 0.15)
+
+
+def test_collision_counted_per_pair_and_per_step():
+    # Three UAVs sitting 0.05 m apart in a row for 3 steps: pairs (0,1),(1,2),(0,2 is 0.1 -> not <0.1)
+    p = np.array([[0.0, 0.0], [0.05, 0.0], [0.10, 0.0]])
+    pos = np.repeat(p[None], 4, axis=0)
+    col = collisions(pos)
+    assert col["collision_pairs"] == 2 and col["collision_pair_steps"] == 6
+
+
+def test_segment_min_distance_closed_form():
+    d = segment_min_distance(np.array([[1.0, 1.0]]), np.array([[1.0, -1.0]]))
+    np.testing.assert_allclose(d, [1.0])
+
+
+def test_arrival_time_is_from_when_it_stays():
+    dest = np.zeros((2, 2))
+    x0 = [5.0, 0.5, 3.0, 0.9, 0.2, 0.1]     # in at k=1, out at k=2, in from k=3 on
+    x1 = [5.0, 4.0, 3.0, 2.0, 1.5, 1.2]     # never within 1 m
+    pos = np.stack([np.stack([x0, np.zeros(6)], 1), np.stack([x1, np.zeros(6)], 1)], axis=1)
+    arrived, t = arrivals(pos, dest, dt_s=0.5)
+    assert arrived.tolist() == [True, False]
+    assert t[0] == 1.5 and np.isnan(t[1])
+
+
+def test_motion_energy_sums_v2_plus_a2_dt():
+    vel = np.array([[[1.0, 0.0]], [[2.0, 0.0]], [[9.0, 9.0]]])
+    acc = np.array([[[0.0, 1.0]], [[0.0, 0.0]]])
+    np.testing.assert_allclose(motion_energy(vel, acc, 0.5), [(1 + 1 + 4 + 0) * 0.5])
+
+
+def test_radio_range_formula_and_erratum_2():
+    np.testing.assert_allclose(radio_range_m(1e-3), np.sqrt(0.5))
+    np.testing.assert_allclose(radio_range_m(10.0), np.sqrt(0.5) * 100)
