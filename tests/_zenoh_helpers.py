@@ -179,6 +179,7 @@ def _vehicle_main(argv: list[str] | None = None) -> int:
 
     state = [ns.x, ns.y, 0.0, 0.0]
     with SwarmExchange(settings, ns.swarm, ns.id, ns.n) as ex:
+        out(event="open")
         t0 = time.monotonic()
         try:
             init = ex.initial_exchange(state, timeout_s=ns.init_timeout)
