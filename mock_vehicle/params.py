@@ -1,0 +1,69 @@
+"""The mock vehicle's parameters, PX4-style: declared once with unit, bounds and default
+(STYLE habit 6), served over the MAVLink parameter protocol as REAL32."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["ParamSpec", "PARAM_SPECS", "ParamTable"]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    name: str
+    default: float
+    min: float
+    max: float
+    unit: str
+    description: str
+
+    def __post_init__(self) -> None:
+        if len(self.name) > 16:
+            raise ValueError(f"MAVLink param ids have at most 16 characters: {self.name}")
+
+
+PARAM_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("COM_OF_LOSS_T", 1.0, 0.0, 60.0, "s", "Offboard setpoint loss timeout before the Hold failsafe (PX4)"),
+    ParamSpec("MPC_ACC_HOR_MAX", 2.0, 0.01, 50.0, "m/s^2", "Airframe horizontal acceleration limit (plant acc_limit_m_s2)"),
+    ParamSpec("SIM_WIND_C0", 0.1, 1e-4, 10.0, "1/s", "c0: velocity relaxation rate to the wind (eq. 1)"),
+    ParamSpec("SIM_WIND_VN", 1.0, -50.0, 50.0, "m/s", "v_o north: mean wind (eq. 1)"),
+    ParamSpec("SIM_WIND_VE", -1.0, -50.0, 50.0, "m/s", "v_o east: mean wind (eq. 1)"),
+    ParamSpec("SIM_WIND_V11", 0.1, -10.0, 10.0, "m/s/sqrt(s)", "V_o[0][0]: wind diffusion (eq. 1)"),
+    ParamSpec("SIM_WIND_V12", 0.0, -10.0, 10.0, "m/s/sqrt(s)", "V_o[0][1]: wind diffusion (eq. 1)"),
+    ParamSpec("SIM_WIND_V21", 0.0, -10.0, 10.0, "m/s/sqrt(s)", "V_o[1][0]: wind diffusion (eq. 1)"),
+    ParamSpec("SIM_WIND_V22", 0.1, -10.0, 10.0, "m/s/sqrt(s)", "V_o[1][1]: wind diffusion (eq. 1)"),
+    ParamSpec("SIM_ARM_DENY", 0.0, 0.0, 1.0, "bool", "1: refuse arming as a failed PX4 preflight check would"),
+)
+
+
+class ParamTable:
+    """Current values, in declaration order (the order is the MAVLink param_index)."""
+
+    def __init__(self, overrides: dict[str, float] | None = None) -> None:
+        self.specs = {s.name: s for s in PARAM_SPECS}
+        self.names = [s.name for s in PARAM_SPECS]
+        self.values = {s.name: float(s.default) for s in PARAM_SPECS}
+        for k, v in (overrides or {}).items():
+            err = self.set(k, v)
+            if err:
+                raise ValueError(err)
+
+    def __getitem__(self, name: str) -> float:
+        return self.values[name]
+
+    def set(self, name: str, value: float) -> str | None:
+        """Set ``name``; returns None, or why the value was refused (unknown, non-finite, out of bounds)."""
+        spec = self.specs.get(name)
+        if spec is None:
+            return f"unknown parameter {name!r}"
+        value = float(value)
+        if not math.isfinite(value):
+            return f"{name}: non-finite value {value}"
+        if not (spec.min <= value <= spec.max):
+            return f"{name}: {value} outside [{spec.min}, {spec.max}] {spec.unit}"
+        self.values[name] = value
+        return None
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)

@@ -1,0 +1,641 @@
+"""A PX4-like vehicle: mode machine, setpoint filter, failsafe, telemetry and parameters
+around the eq. 9 plant (issue 3; SPEC section 4). No sockets here: ``MockVehicle.handle``
+takes a decoded message, ``MockVehicle.tick`` advances the clocks; both send through the
+``send(msg, port)`` callback given at construction (``port=None`` means every port).
+
+Clocks (docs/lockstep.md):
+- real time: simulated time = wall time since start; physics sub-stepped every
+  ``physics_dt_s`` of wall time; ``time_boot_ms`` = wall ms since start.
+- lockstep: simulated time starts at 0 and advances by exactly ``dt_s`` when, armed and in
+  OFFBOARD, a setpoint stamped with the current simulated ``time_boot_ms`` arrives.
+
+Dynamics: frozen at the initial state until the first OFFBOARD entry (the vehicle hovers at
+its slot); then OFFBOARD integrates the held setpoint, every other mode PX4 Hold
+(``hold_acc_m_s2`` around where it began). Altitude is fixed (z = -altitude) except in LAND.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from mavlink_bridge import (
+    PX4_HOLD,
+    PX4_LAND,
+    PX4_OFFBOARD,
+    PX4_POSCTL,
+    Attitude,
+    AutopilotVersion,
+    BadData,
+    CommandAck,
+    CommandInt,
+    CommandLong,
+    ExtendedSysState,
+    GlobalPositionInt,
+    Heartbeat,
+    HomePosition,
+    LocalPositionNed,
+    MavAutopilot,
+    MavCmd,
+    MavFrame,
+    MavLandedState,
+    MavModeFlag,
+    MavParamType,
+    MavResult,
+    MavSeverity,
+    MavState,
+    MavType,
+    Message,
+    ParamRequestList,
+    ParamRequestRead,
+    ParamSet,
+    ParamValue,
+    PositionTargetTypeMask,
+    Px4MainMode,
+    Px4Mode,
+    Received,
+    SetMode,
+    SetPositionTargetLocalNed,
+    StatusText,
+    SysStatus,
+    UnknownMessage,
+)
+from mavlink_bridge import MSG_ID_BY_NAME
+
+from .params import ParamTable
+from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, saturate_norm
+
+__all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint"]
+
+log = logging.getLogger("mock_vehicle")
+
+EARTH_RADIUS_M = 6_378_137.0
+GRAVITY_M_S2 = 9.80665
+OFFBOARD_MIN_RATE_GAP_S = 0.5  # >= 2 Hz
+OFFBOARD_MIN_STREAM_S = 1.0  # for > 1 s
+LAND_DESCENT_M_S = 1.0
+HOLD_LIKE = (PX4_HOLD, PX4_POSCTL)
+CAPABILITIES = 2 | 8 | 128 | 8192  # PARAM_FLOAT | COMMAND_INT | SET_POSITION_TARGET_LOCAL_NED | MAVLINK2
+
+_ID = MSG_ID_BY_NAME
+TELEMETRY_IDS = {
+    _ID["HEARTBEAT"]: "heartbeat",
+    _ID["SYS_STATUS"]: "sys_status",
+    _ID["ATTITUDE"]: "attitude",
+    _ID["LOCAL_POSITION_NED"]: "local_position",
+    _ID["GLOBAL_POSITION_INT"]: "global_position",
+    _ID["HOME_POSITION"]: "home_position",
+    _ID["EXTENDED_SYS_STATE"]: "extended_sys_state",
+}
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Everything the mock vehicle needs, read once at the command line."""
+
+    instance: int = 0
+    initial_pos_m: tuple[float, float] = (0.0, 0.0)
+    initial_vel_m_s: tuple[float, float] | None = None
+    seed: int = 0
+    home_lat_deg: float = 47.397742
+    home_lon_deg: float = 8.545594
+    home_alt_amsl_m: float = 488.0
+    altitude_m: float = 10.0
+    wind: WindParams = field(default_factory=WindParams)
+    acc_limit_m_s2: float = 2.0
+    physics_dt_s: float = 0.1
+    dt_s: float = 1.0
+    lockstep: bool = False
+    com_of_loss_t_s: float = 1.0
+    deny_arming: bool = False
+    rates_hz: dict = field(
+        default_factory=lambda: {
+            "heartbeat": 1.0,
+            "local_position": 30.0,
+            "attitude": 10.0,
+            "global_position": 5.0,
+            "sys_status": 1.0,
+            "extended_sys_state": 1.0,
+            "home_position": 0.5,
+        }
+    )
+    lockstep_resend_hz: float = 5.0
+
+    @property
+    def system_id(self) -> int:
+        return self.instance + 1
+
+    @property
+    def component_id(self) -> int:
+        return 1
+
+
+class RejectLog:
+    """Rate-limited log of rejected input: the first of each kind is logged with its
+    detail, later ones are counted and summarised at most every ``period_s``."""
+
+    def __init__(self, logger: logging.Logger, period_s: float = 5.0) -> None:
+        self._log = logger
+        self._period_s = period_s
+        self.counts: dict[str, int] = {}
+        self._reported: dict[str, tuple[int, float]] = {}
+
+    def reject(self, kind: str, detail: str) -> None:
+        n = self.counts.get(kind, 0) + 1
+        self.counts[kind] = n
+        now = time.monotonic()
+        if n == 1:
+            self._log.warning("rejected %s: %s (further ones are counted)", kind, detail)
+            self._reported[kind] = (1, now)
+            return
+        last_n, last_t = self._reported[kind]
+        if now - last_t >= self._period_s:
+            self._log.warning("rejected %s: %d more (total %d), latest: %s", kind, n - last_n, n, detail)
+            self._reported[kind] = (n, now)
+
+    def summary(self) -> None:
+        for kind, n in self.counts.items():
+            self._log.info("rejected %s: %d in total", kind, n)
+
+
+def _finite(*xs: float) -> bool:
+    return all(math.isfinite(x) for x in xs)
+
+
+def check_setpoint(sp: SetPositionTargetLocalNed, system_id: int, component_id: int) -> tuple[str, str] | None:
+    """PX4's filter for SET_POSITION_TARGET_LOCAL_NED (SPEC 4). Returns None if usable, or
+    (kind, detail) of the rejection: wrong target, frame other than LOCAL_NED/BODY_NED,
+    FORCE_SET bit, a mask ignoring position, velocity and acceleration alike, or a
+    non-finite value in a field the mask uses."""
+    F = PositionTargetTypeMask
+    if sp.target_system not in (0, system_id):
+        return "setpoint wrong target system", f"target_system {sp.target_system}, this vehicle is {system_id}"
+    if sp.target_component not in (0, component_id):
+        return "setpoint wrong target component", f"target_component {sp.target_component}"
+    if sp.coordinate_frame not in (MavFrame.LOCAL_NED, MavFrame.BODY_NED):
+        return "setpoint unsupported frame", f"coordinate_frame {sp.coordinate_frame} (LOCAL_NED=1 or BODY_NED=8 only)"
+    mask = sp.type_mask
+    if mask & F.FORCE_SET:
+        return "setpoint FORCE_SET bit", f"type_mask {mask:#06x}"
+    use_pos = (mask & F.POSITION_IGNORE) != F.POSITION_IGNORE
+    use_vel = (mask & F.VELOCITY_IGNORE) != F.VELOCITY_IGNORE
+    use_acc = (mask & F.ACCELERATION_IGNORE) != F.ACCELERATION_IGNORE
+    if not (use_pos or use_vel or use_acc):
+        return "setpoint ignores everything", f"type_mask {mask:#06x} ignores position, velocity and acceleration"
+    used = []
+    for bit, value in (
+        (F.X_IGNORE, sp.x_m), (F.Y_IGNORE, sp.y_m), (F.Z_IGNORE, sp.z_m),
+        (F.VX_IGNORE, sp.vx_m_s), (F.VY_IGNORE, sp.vy_m_s), (F.VZ_IGNORE, sp.vz_m_s),
+        (F.AX_IGNORE, sp.afx_m_s2), (F.AY_IGNORE, sp.afy_m_s2), (F.AZ_IGNORE, sp.afz_m_s2),
+        (F.YAW_IGNORE, sp.yaw_rad), (F.YAW_RATE_IGNORE, sp.yaw_rate_rad_s),
+    ):  # fmt: skip
+        if not mask & bit:
+            used.append(value)
+    if not _finite(*used):
+        return "setpoint non-finite field", f"NaN/inf in a used field (type_mask {mask:#06x})"
+    return None
+
+
+class MockVehicle:
+    """The PX4-like vehicle (see module docstring). ``send(msg, port)``: port None = all."""
+
+    def __init__(self, cfg: VehicleConfig, send: Callable[[Message, object | None], None], clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg = cfg
+        self._send = send
+        self._clock = clock
+        self.sysid = cfg.system_id
+        self.compid = cfg.component_id
+        v = cfg.wind.V_o
+        self.params = ParamTable(
+            {
+                "COM_OF_LOSS_T": cfg.com_of_loss_t_s,
+                "MPC_ACC_HOR_MAX": cfg.acc_limit_m_s2,
+                "SIM_WIND_C0": cfg.wind.c0_per_s,
+                "SIM_WIND_VN": cfg.wind.mean_wind_m_s[0],
+                "SIM_WIND_VE": cfg.wind.mean_wind_m_s[1],
+                "SIM_WIND_V11": v[0, 0],
+                "SIM_WIND_V12": v[0, 1],
+                "SIM_WIND_V21": v[1, 0],
+                "SIM_WIND_V22": v[1, 1],
+                "SIM_ARM_DENY": 1.0 if cfg.deny_arming else 0.0,
+            }
+        )
+        self.plant = SwarmPlant(
+            np.array([cfg.initial_pos_m], dtype=float),
+            PlantParams(wind=cfg.wind, acc_limit_m_s2=cfg.acc_limit_m_s2, physics_dt_s=cfg.physics_dt_s),
+            seed=cfg.seed,
+            vehicle_ids=np.array([cfg.instance]),
+            initial_vel_m_s=None if cfg.initial_vel_m_s is None else np.array([cfg.initial_vel_m_s], dtype=float),
+        )
+        self.rejects = RejectLog(log)
+        self.armed = False
+        self.mode: Px4Mode = PX4_HOLD
+        self.flying = False  # False until the first OFFBOARD entry: plant frozen
+        self.z_m = -float(cfg.altitude_m)
+        self.vz_m_s = 0.0
+        self.hold_pos_m = np.array(cfg.initial_pos_m, dtype=float)
+        self.setpoint: SetPositionTargetLocalNed | None = None
+        self.applied_acc_m_s2 = np.zeros(2)
+        self._t0 = clock()
+        self._phys_t_s = 0.0  # real time: simulated time integrated so far
+        self.step_index = 0  # lockstep: control steps taken
+        self._dt_ms = int(round(cfg.dt_s * 1000))
+        if cfg.lockstep and abs(self._dt_ms - cfg.dt_s * 1000) > 1e-6:
+            raise ValueError(f"lockstep dt_s must be a whole number of ms, got {cfg.dt_s}")
+        self._stream_start_wall: float | None = None
+        self._last_sp_wall = -math.inf
+        self._last_sp_sim_s = 0.0
+        self._intervals_s = {k: (1.0 / hz if hz > 0 else math.inf) for k, hz in cfg.rates_hz.items()}
+        self._next_due = {k: self._t0 for k in self._intervals_s}
+        self._next_resend = self._t0
+        self.n_steps_failsafe = 0
+
+    # ------------------------------------------------------------------ clocks
+    def wall_s(self) -> float:
+        return self._clock() - self._t0
+
+    def sim_time_s(self) -> float:
+        """Simulated time: lockstep steps * dt_s, or integrated wall time in real time."""
+        return self.step_index * self._dt_ms / 1000.0 if self.cfg.lockstep else self.wall_s()
+
+    def time_boot_ms(self) -> int:
+        if self.cfg.lockstep:
+            return self.step_index * self._dt_ms
+        return int(self.wall_s() * 1000)
+
+    @property
+    def state(self) -> np.ndarray:
+        """[x_m, y_m, vx_m_s, vy_m_s] (north, east)."""
+        return self.plant.states[0]
+
+    # ------------------------------------------------------------------ input
+    def handle(self, r: Received, port: object | None = None) -> None:
+        """Process one received message; never raises on bad input."""
+        msg = r.msg
+        try:
+            if isinstance(msg, SetPositionTargetLocalNed):
+                self._on_setpoint(msg, port)
+            elif isinstance(msg, CommandLong):
+                self._on_command(msg.target_system, msg.target_component, msg.command, msg.params, r, port)
+            elif isinstance(msg, CommandInt):
+                p = tuple(msg.params) + (float(msg.x), float(msg.y), float(msg.z))
+                self._on_command(msg.target_system, msg.target_component, msg.command, p, r, port)
+            elif isinstance(msg, SetMode):
+                self._on_set_mode_msg(msg)
+            elif isinstance(msg, (ParamRequestList, ParamRequestRead, ParamSet)):
+                self._on_param(msg, port)
+            elif isinstance(msg, BadData):
+                self.rejects.reject("bad packet", f"{msg.reason} ({msg.n_bytes} bytes)")
+            elif isinstance(msg, (Heartbeat, UnknownMessage)):
+                pass
+        except Exception:  # a bug must not kill the vehicle; say so loudly
+            log.exception("error handling %s from %d/%d", type(msg).__name__, r.src_system, r.src_component)
+
+    def _for_me(self, target_system: int, target_component: int) -> bool:
+        return target_system in (0, self.sysid) and target_component in (0, self.compid)
+
+    def _on_setpoint(self, sp: SetPositionTargetLocalNed, port: object | None) -> None:
+        bad = check_setpoint(sp, self.sysid, self.compid)
+        if bad is not None:
+            self.rejects.reject(*bad)
+            return
+        if self.cfg.lockstep and self.armed and self.mode == PX4_OFFBOARD:
+            if sp.time_boot_ms == self.time_boot_ms():
+                self.setpoint = sp
+                self._lockstep_step()
+            else:
+                self._send(self._local_position(), port)  # idempotent retry answer
+            return
+        now = self.wall_s()
+        if self._stream_start_wall is None or now - self._last_sp_wall > OFFBOARD_MIN_RATE_GAP_S:
+            self._stream_start_wall = now
+        self._last_sp_wall = now
+        self._last_sp_sim_s = self.sim_time_s()
+        self.setpoint = sp
+
+    def _offboard_stream_ok(self) -> bool:
+        now = self.wall_s()
+        return (
+            self._stream_start_wall is not None
+            and now - self._last_sp_wall <= OFFBOARD_MIN_RATE_GAP_S
+            and now - self._stream_start_wall > OFFBOARD_MIN_STREAM_S
+        )
+
+    def _on_command(self, target_system, target_component, command, params, r: Received, port) -> None:
+        if not self._for_me(target_system, target_component):
+            self.rejects.reject("command for another system", f"command {command} to {target_system}/{target_component}")
+            return
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        result = MavResult.UNSUPPORTED
+        after: list[Message] = []
+        if command == MavCmd.COMPONENT_ARM_DISARM:
+            result = self._arm_disarm(p[0], p[1])
+        elif command == MavCmd.DO_SET_MODE:
+            if not _finite(p[0], p[1], p[2]) or not (int(p[0]) & MavModeFlag.CUSTOM_MODE_ENABLED):
+                result = MavResult.DENIED
+            else:
+                result = self._request_mode(Px4Mode(int(p[1]), int(p[2])))
+        elif command == MavCmd.NAV_LAND:
+            result = self._request_mode(PX4_LAND)
+        elif command == MavCmd.SET_MESSAGE_INTERVAL:
+            result = self._set_interval(p[0], p[1])
+        elif command in (MavCmd.REQUEST_MESSAGE, MavCmd.GET_HOME_POSITION, MavCmd.REQUEST_AUTOPILOT_CAPABILITIES):
+            msg_id = {MavCmd.GET_HOME_POSITION: _ID["HOME_POSITION"], MavCmd.REQUEST_AUTOPILOT_CAPABILITIES: _ID["AUTOPILOT_VERSION"]}.get(
+                command, int(p[0]) if _finite(p[0]) else -1
+            )
+            m = self._message_by_id(msg_id)
+            result = MavResult.ACCEPTED if m is not None else MavResult.DENIED
+            after = [m] if m is not None else []
+        if result == MavResult.UNSUPPORTED:
+            log.info("unsupported command %d from %d/%d", command, r.src_system, r.src_component)
+        self._send(CommandAck(int(command), int(result), r.src_system, r.src_component), port)
+        for m in after:
+            self._send(m, port)
+
+    def _arm_disarm(self, p1: float, p2: float) -> MavResult:
+        if p1 == 1.0:
+            if self.params["SIM_ARM_DENY"] >= 0.5 and p2 != 21196.0:
+                self._statustext(MavSeverity.CRITICAL, "Preflight Fail: SIM_ARM_DENY set")
+                log.warning("arming denied (SIM_ARM_DENY)")
+                return MavResult.DENIED
+            if not self.armed:
+                self.armed = True
+                log.info("armed")
+                self._send_heartbeat()
+            return MavResult.ACCEPTED
+        if p1 == 0.0:
+            if self.armed:
+                self.armed = False
+                log.info("disarmed")
+                self._send_heartbeat()
+            return MavResult.ACCEPTED
+        return MavResult.DENIED
+
+    def _request_mode(self, mode: Px4Mode) -> MavResult:
+        if mode.main_mode == Px4MainMode.OFFBOARD:
+            mode = PX4_OFFBOARD
+            if self.mode != PX4_OFFBOARD and not self._offboard_stream_ok():
+                self._statustext(MavSeverity.CRITICAL, "Switching to Offboard is currently not available")
+                log.warning("OFFBOARD refused: no setpoint stream at >= 2 Hz for > 1 s")
+                return MavResult.TEMPORARILY_REJECTED
+        elif mode.main_mode == Px4MainMode.AUTO and mode.sub_mode in (0, PX4_HOLD.sub_mode):
+            mode = PX4_HOLD
+        elif mode not in (PX4_LAND, PX4_POSCTL):
+            log.warning("mode %s not supported by the mock", mode)
+            return MavResult.TEMPORARILY_REJECTED
+        self._set_mode(mode, reason="commanded")
+        return MavResult.ACCEPTED
+
+    def _set_mode(self, mode: Px4Mode, reason: str) -> None:
+        if mode == self.mode:
+            return
+        log.info("mode %s -> %s (%s)", self.mode, mode, reason)
+        self.mode = mode
+        if mode == PX4_OFFBOARD:
+            self.flying = True
+            self._last_sp_sim_s = self.sim_time_s()
+        elif mode in HOLD_LIKE or mode == PX4_LAND:
+            self.hold_pos_m = self.state[0:2].copy()
+        self._send_heartbeat()
+
+    def _on_set_mode_msg(self, m: SetMode) -> None:
+        if m.target_system not in (0, self.sysid):
+            self.rejects.reject("SET_MODE for another system", f"target_system {m.target_system}")
+            return
+        if not m.base_mode & MavModeFlag.CUSTOM_MODE_ENABLED:
+            self.rejects.reject("SET_MODE without custom mode", f"base_mode {m.base_mode}")
+            return
+        self._request_mode(Px4Mode.from_custom_mode(m.custom_mode))
+
+    def _set_interval(self, msg_id_f: float, interval_us: float) -> MavResult:
+        if not _finite(msg_id_f, interval_us):
+            return MavResult.DENIED
+        kind = TELEMETRY_IDS.get(int(msg_id_f))
+        if kind is None:
+            return MavResult.DENIED
+        if interval_us < 0:
+            self._intervals_s[kind] = math.inf
+        elif interval_us == 0:
+            hz = VehicleConfig().rates_hz[kind]
+            self._intervals_s[kind] = 1.0 / hz
+        else:
+            self._intervals_s[kind] = max(interval_us * 1e-6, 1e-3)
+        self._next_due[kind] = self._clock()
+        return MavResult.ACCEPTED
+
+    def _on_param(self, m, port) -> None:
+        if not self._for_me(m.target_system, m.target_component):
+            return
+        if isinstance(m, ParamRequestList):
+            for name in self.params.names:
+                self._send(self._param_value(name), port)
+        elif isinstance(m, ParamRequestRead):
+            if m.param_index >= 0:
+                name = self.params.names[m.param_index] if m.param_index < len(self.params.names) else None
+            else:
+                name = m.param_id if m.param_id in self.params.values else None
+            if name is None:
+                self.rejects.reject("unknown parameter", f"{m.param_id!r} / index {m.param_index}")
+                return
+            self._send(self._param_value(name), port)
+        elif isinstance(m, ParamSet):
+            err = self.params.set(m.param_id, m.value)
+            if err is not None:
+                self.rejects.reject("PARAM_SET refused", err)
+                if m.param_id not in self.params.values:
+                    return
+            else:
+                log.info("param %s = %g", m.param_id, m.value)
+                self._apply_params()
+            self._send(self._param_value(m.param_id), None)
+
+    def _param_value(self, name: str) -> ParamValue:
+        return ParamValue(name, self.params[name], MavParamType.REAL32, len(self.params.names), self.params.index(name))
+
+    def _apply_params(self) -> None:
+        p = self.params
+        wind = WindParams(
+            c0_per_s=p["SIM_WIND_C0"],
+            mean_wind_m_s=(p["SIM_WIND_VN"], p["SIM_WIND_VE"]),
+            wind_diffusion_m_s=((p["SIM_WIND_V11"], p["SIM_WIND_V12"]), (p["SIM_WIND_V21"], p["SIM_WIND_V22"])),
+        )
+        self.plant.params = PlantParams(wind=wind, acc_limit_m_s2=p["MPC_ACC_HOR_MAX"], physics_dt_s=self.cfg.physics_dt_s)
+
+    # ------------------------------------------------------------------ dynamics
+    def _setpoint_acc_m_s2(self) -> np.ndarray:
+        """Horizontal acceleration the held setpoint asks for (float32 from the wire, as
+        float64). Acceleration is used as is (feed-forward); velocity and position
+        setpoints (masks PX4 also accepts) go through a PD like PX4's position loop."""
+        sp = self.setpoint
+        if sp is None:
+            return np.zeros(2)
+        F = PositionTargetTypeMask
+        m = sp.type_mask
+        s = self.state
+        acc = np.zeros(2)
+        if (m & F.ACCELERATION_IGNORE) != F.ACCELERATION_IGNORE:
+            acc += np.array([sp.afx_m_s2, sp.afy_m_s2], dtype=np.float64)
+        vel_sp = np.zeros(2)
+        use_vel = (m & F.VELOCITY_IGNORE) != F.VELOCITY_IGNORE
+        if use_vel:
+            vel_sp = np.array([sp.vx_m_s, sp.vy_m_s])
+        if (m & F.POSITION_IGNORE) != F.POSITION_IGNORE:
+            acc += 1.0 * (np.array([sp.x_m, sp.y_m]) - s[0:2]) + 2.0 * (vel_sp - s[2:4])
+        elif use_vel:
+            acc += 2.0 * (vel_sp - s[2:4])
+        if sp.coordinate_frame == MavFrame.BODY_NED:
+            pass  # yaw is held at 0 (north), so body and local NED coincide
+        return acc
+
+    def _current_acc_m_s2(self) -> np.ndarray:
+        if self.mode == PX4_OFFBOARD:
+            return self._setpoint_acc_m_s2().reshape(1, 2)
+        return hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
+
+    def _moving(self) -> bool:
+        return self.flying and self.armed
+
+    def _step(self, dt_s: float) -> None:
+        acc = self._current_acc_m_s2()
+        if not np.all(np.isfinite(acc)):
+            log.error("non-finite acceleration %s: holding instead", acc)
+            acc = hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
+        before = self.plant.states.copy()
+        self.applied_acc_m_s2 = self.plant.step(acc, dt_s)[0]
+        if not np.all(np.isfinite(self.plant.states)):
+            log.error("plant state became non-finite; restoring the previous state")
+            self.plant.states = before
+        if self.mode == PX4_LAND:
+            self.vz_m_s = LAND_DESCENT_M_S
+            self.z_m = min(0.0, self.z_m + LAND_DESCENT_M_S * dt_s)
+            if self.z_m >= 0.0:
+                self.vz_m_s = 0.0
+                self.armed = False
+                self.plant.states[0, 2:4] = 0.0
+                log.info("landed: disarmed")
+                self._send_heartbeat()
+        else:
+            self.vz_m_s = 0.0
+
+    def _lockstep_step(self) -> None:
+        """Lockstep: one control step of dt_s with the setpoint just received, then telemetry."""
+        self._step(self._dt_ms / 1000.0)
+        self.step_index += 1
+        self._last_sp_sim_s = self.sim_time_s()
+        for m in self._fast_telemetry():
+            self._send(m, None)
+
+    def tick(self) -> None:
+        """Advance the clocks: real-time physics, failsafe, periodic telemetry."""
+        now = self._clock()
+        if self.mode == PX4_OFFBOARD and self.sim_time_s() - self._last_sp_sim_s > self.params["COM_OF_LOSS_T"]:
+            self._statustext(MavSeverity.WARNING, "Failsafe: offboard setpoints lost, Hold")
+            log.warning("offboard setpoint stream lost for > COM_OF_LOSS_T = %g s: failsafe to HOLD", self.params["COM_OF_LOSS_T"])
+            self._set_mode(PX4_HOLD, reason="offboard loss failsafe")
+        if not self.cfg.lockstep:
+            elapsed = self.wall_s()
+            h = self.cfg.physics_dt_s
+            n = 0
+            while self._phys_t_s + h <= elapsed:
+                if self._moving():
+                    self._step(h)
+                self._phys_t_s += h
+                n += 1
+                if n > 200:
+                    log.warning("physics fell %.2f s behind the wall clock; skipping ahead", elapsed - self._phys_t_s)
+                    self._phys_t_s = elapsed
+                    break
+        self._periodic(now)
+
+    def _periodic(self, now: float) -> None:
+        lockstep_fast = self.cfg.lockstep and self.mode == PX4_OFFBOARD and self.armed
+        for kind, interval in self._intervals_s.items():
+            if interval == math.inf or now < self._next_due[kind]:
+                continue
+            if lockstep_fast and kind in ("local_position", "attitude", "global_position"):
+                continue  # in lockstep these follow the steps (plus the slow re-send below)
+            self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
+            self._send(self._telemetry(kind), None)
+        if lockstep_fast and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
+            self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
+            for m in self._fast_telemetry():
+                self._send(m, None)
+
+    def next_deadline(self) -> float:
+        """Monotonic time of the next periodic event (for the I/O loop's select timeout)."""
+        t = min(self._next_due[k] for k, iv in self._intervals_s.items() if iv != math.inf) if self._intervals_s else math.inf
+        if not self.cfg.lockstep:
+            t = min(t, self._t0 + self._phys_t_s + self.cfg.physics_dt_s)
+        return t
+
+    # ------------------------------------------------------------------ output
+    def _statustext(self, severity: int, text: str) -> None:
+        self._send(StatusText(int(severity), text[:50]), None)
+
+    def _send_heartbeat(self) -> None:
+        self._send(self._heartbeat(), None)
+
+    def _heartbeat(self) -> Heartbeat:
+        base = MavModeFlag.CUSTOM_MODE_ENABLED | (MavModeFlag.SAFETY_ARMED if self.armed else 0)
+        if self.mode == PX4_OFFBOARD:
+            base |= MavModeFlag.GUIDED_ENABLED | MavModeFlag.STABILIZE_ENABLED
+        elif self.mode.main_mode == Px4MainMode.AUTO:
+            base |= MavModeFlag.AUTO_ENABLED | MavModeFlag.GUIDED_ENABLED | MavModeFlag.STABILIZE_ENABLED
+        return Heartbeat(
+            type=MavType.QUADROTOR,
+            autopilot=MavAutopilot.PX4,
+            base_mode=int(base),
+            custom_mode=self.mode.custom_mode,
+            system_status=MavState.ACTIVE if self.armed else MavState.STANDBY,
+        )
+
+    def _local_position(self) -> LocalPositionNed:
+        x, y, vx, vy = (float(v) for v in self.state)
+        return LocalPositionNed(self.time_boot_ms(), x, y, self.z_m, vx, vy, self.vz_m_s)
+
+    def _attitude(self) -> Attitude:
+        an, ae = (float(a) for a in self.applied_acc_m_s2) if self._moving() else (0.0, 0.0)
+        return Attitude(self.time_boot_ms(), math.atan2(ae, GRAVITY_M_S2), math.atan2(-an, GRAVITY_M_S2), 0.0)
+
+    def _global_position(self) -> GlobalPositionInt:
+        x, y, vx, vy = (float(v) for v in self.state)
+        lat0 = self.cfg.home_lat_deg
+        lat = lat0 + math.degrees(x / EARTH_RADIUS_M)
+        lon = self.cfg.home_lon_deg + math.degrees(y / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+        return GlobalPositionInt(
+            self.time_boot_ms(), lat, lon, self.cfg.home_alt_amsl_m - self.z_m, -self.z_m, vx, vy, self.vz_m_s, 0.0
+        )
+
+    def _telemetry(self, kind: str) -> Message:
+        if kind == "heartbeat":
+            return self._heartbeat()
+        if kind == "local_position":
+            return self._local_position()
+        if kind == "attitude":
+            return self._attitude()
+        if kind == "global_position":
+            return self._global_position()
+        if kind == "home_position":
+            return HomePosition(self.cfg.home_lat_deg, self.cfg.home_lon_deg, self.cfg.home_alt_amsl_m)
+        if kind == "sys_status":
+            return SysStatus(load_permille=100, voltage_battery_v=16.2, battery_remaining_pct=100)
+        if kind == "extended_sys_state":
+            landed = MavLandedState.IN_AIR if self.armed else MavLandedState.ON_GROUND
+            if self.mode == PX4_LAND and self.armed:
+                landed = MavLandedState.LANDING
+            return ExtendedSysState(0, int(landed))
+        raise KeyError(kind)
+
+    def _fast_telemetry(self) -> list[Message]:
+        return [self._local_position(), self._attitude(), self._global_position()]
+
+    def _message_by_id(self, msg_id: int) -> Message | None:
+        if msg_id == _ID["AUTOPILOT_VERSION"]:
+            return AutopilotVersion(CAPABILITIES, flight_sw_version=(1 << 24) | (14 << 16), uid=self.sysid)
+        kind = TELEMETRY_IDS.get(msg_id)
+        return None if kind is None else self._telemetry(kind)

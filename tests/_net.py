@@ -1,0 +1,143 @@
+"""Shared helpers for end-to-end tests: free loopback UDP ports, spawning real processes
+with their stderr in a file, killing them (whole process group) in ``finally``, and
+waiting with a timeout. Nothing here imports project packages."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+__all__ = ["free_udp_port", "free_udp_ports", "Proc", "spawn", "wait_until", "mock_vehicle_cmd", "PYTHON", "VENV_BIN"]
+
+PYTHON = sys.executable
+VENV_BIN = Path(sys.executable).parent
+REPO = Path(__file__).resolve().parent.parent
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def free_udp_ports(n: int) -> list[int]:
+    """``n`` distinct free UDP ports (held open together while picking)."""
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            socks.append(s)
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def wait_until(predicate: Callable[[], object], timeout_s: float, what: str, poll_s: float = 0.05):
+    """Poll ``predicate`` until it returns something truthy; raise TimeoutError naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(poll_s)
+
+
+class Proc:
+    """A spawned process in its own session; stdout+stderr go to ``log_path``."""
+
+    def __init__(self, argv: Sequence[str], log_path: Path, env: dict | None = None, cwd: Path | None = None) -> None:
+        self.argv = list(argv)
+        self.log_path = log_path
+        self._log_file = open(log_path, "wb")
+        self.popen = subprocess.Popen(
+            self.argv,
+            stdout=self._log_file,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            cwd=str(cwd or REPO),
+            start_new_session=True,
+        )
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def log_text(self) -> str:
+        self._log_file.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def wait_log(self, needle: str, timeout_s: float) -> str:
+        """Wait until ``needle`` appears in the process's output."""
+        return wait_until(lambda: needle in self.log_text() and self.log_text(), timeout_s, f"{needle!r} in {self.log_path}")
+
+    def send_signal(self, signum: int) -> None:
+        if self.alive():
+            self.popen.send_signal(signum)
+
+    def stop(self, signum: int = signal.SIGTERM, timeout_s: float = 5.0) -> int:
+        """Send ``signum``, wait up to ``timeout_s``, then SIGKILL the process group."""
+        try:
+            if self.alive():
+                self.popen.send_signal(signum)
+                try:
+                    return self.popen.wait(timeout=timeout_s)
+                except subprocess.TimeoutExpired:
+                    pass
+            return self.popen.wait(timeout=0.1)
+        except subprocess.TimeoutExpired:
+            return self.kill()
+        finally:
+            self._kill_group()
+            self._log_file.close()
+
+    def kill(self) -> int:
+        self._kill_group()
+        try:
+            return self.popen.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:  # pragma: no cover - should not happen after SIGKILL
+            return -9
+
+    def _kill_group(self) -> None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(self.popen.pid, signal.SIGKILL)
+
+
+@contextlib.contextmanager
+def spawn(argv: Sequence[str], log_dir: Path | None = None, name: str = "proc", env: dict | None = None,
+          stop_signal: int = signal.SIGTERM, stop_timeout_s: float = 5.0) -> Iterator[Proc]:
+    """Run ``argv`` for the duration of the ``with`` block; always stopped (then killed) on exit."""
+    log_dir = Path(log_dir or tempfile.mkdtemp(prefix="e2e-"))
+    log_dir.mkdir(parents=True, exist_ok=True)
+    proc = Proc(argv, log_dir / f"{name}-{time.monotonic_ns()}.log", env=env)
+    try:
+        yield proc
+    finally:
+        proc.stop(stop_signal, stop_timeout_s)
+
+
+def mock_vehicle_cmd(onboard_port: int, *extra: str, instance: int = 0, gcs: str = "none") -> list[str]:
+    """Command line of a mock vehicle sending its onboard link to 127.0.0.1:``onboard_port``."""
+    return [
+        PYTHON, "-m", "mock_vehicle.cli",
+        "--instance", str(instance),
+        "--onboard-url", f"udpout:127.0.0.1:{onboard_port}",
+        "--gcs-url", gcs,
+        *extra,
+    ]  # fmt: skip
