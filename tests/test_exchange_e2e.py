@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -136,6 +137,38 @@ def test_killed_vehicle_is_gone_and_others_go_on(swarm_name):
             assert procs[i].next_event(10, "done")
         assert time.monotonic() - t_kill < 10
     finally:
+        stop_all(procs)
+
+
+def test_frozen_vehicle_drops_out_after_one_deadline(swarm_name):
+    """Vehicle 2 is frozen (SIGSTOP) after step 2: its token stays alive (lease 10 s), so the
+    others wait one deadline (1 s) for it, then step on without waiting for it again."""
+    n, steps, deadline_s = 3, 7, 1.0
+    port = free_tcp_port()
+    procs: list[Proc] = []
+    try:
+        for i in range(n):
+            procs.append(Proc(vehicle_argv(
+                swarm_name, i, n, x=float(i), steps=steps, range_m=100.0,
+                step_timeout_s=deadline_s, step_period_s=0.15,
+                listen=[ep(port)] if i == 0 else [], connect=[ep(port)] if i else []), f"veh{i}"))
+        for pr in procs:
+            pr.next_event(30, "init")
+        for _ in range(2):
+            procs[2].next_event(10, "step")
+        procs[2].p.send_signal(signal.SIGSTOP)
+        for i in range(2):
+            evs = [procs[i].next_event(15, "step") for _ in range(steps)]
+            after = [e for e in evs if 2 not in e["neighbours"]]
+            assert after, evs
+            assert all(2 in e["present"] for e in evs)  # frozen, not gone
+            waited = [e for e in after if e["wait_s"] > 0.8 * deadline_s]
+            assert len(waited) == 1, evs  # exactly one deadline
+            assert all(e["wait_s"] < 0.5 for e in after if e is not waited[0])
+            assert after[-1]["neighbours"] == [1 - i]
+    finally:
+        if len(procs) == n:
+            procs[2].kill()  # SIGKILL also ends a stopped process
         stop_all(procs)
 
 
