@@ -99,6 +99,13 @@ require: state scaling, the action's sign, and saturation of |a|."""
 
 
 def preset_by_name(name: str) -> Preset:
+    """The preset called ``name``: ``paper`` here, others from ``mfg_autopilot.preset_<name>.PRESET``."""
     if name == "paper":
         return PAPER
-    raise ValueError(f"unknown preset {name!r}; known: paper")
+    import importlib
+
+    try:
+        mod = importlib.import_module(f"{__package__}.preset_{name}")
+    except ModuleNotFoundError:
+        raise ValueError(f"unknown preset {name!r}") from None
+    return mod.PRESET

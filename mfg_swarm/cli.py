@@ -8,6 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
+from mfg_autopilot.controller import MODES
 from mfg_autopilot.params import preset_by_name, radio_range_m
 
 __all__ = ["main", "build_parser"]
@@ -16,7 +17,8 @@ __all__ = ["main", "build_parser"]
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="paper", help="mission scenario (default: paper)")
     p.add_argument("--n", type=int, default=25, help="number of UAVs N (default: 25)")
-    p.add_argument("--mode", choices=("mfg", "hjb"), default="mfg", help="MFG learning control or HJB_d (default: mfg)")
+    p.add_argument("--mode", choices=MODES, default="mfg",
+                   help="mfg: MFG learning control (Alg. 4); hjb: HJB_d learning control (Alg. 3); *-pde: the solved controllers (Alg. 2 / 1) (default: mfg)")
     rng = p.add_mutually_exclusive_group()
     rng.add_argument("--range-m", type=float, default=None, help="HJB_d radio range d in metres")
     rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P in mW; d = [P/(theta sigma^2)]^(1/alpha)")

@@ -20,8 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mfg_autopilot.costs import phi_G_pairs
-from mfg_autopilot.learners import HJBLearner, MFGLearner
+from mfg_autopilot.controller import MODES, Neighbours, Observation, make_controller
 from mfg_autopilot.params import Preset
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams
 
@@ -47,10 +46,15 @@ class SimConfig:
     physics_dt_s: float = 0.1
     link_float32: bool = True
 
+    @property
+    def gossips(self) -> bool:
+        """HJB_d modes exchange states with neighbours in range at every step."""
+        return self.mode.startswith("hjb")
+
     def __post_init__(self) -> None:
-        if self.mode not in ("mfg", "hjb"):
-            raise ValueError(f"mode must be 'mfg' or 'hjb', got {self.mode!r}")
-        if self.mode == "hjb" and not (self.range_m is not None and self.range_m >= 0):
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.gossips and not (self.range_m is not None and self.range_m >= 0):
             raise ValueError("HJB_d needs a radio range: give --range-m D or --power-mw P")
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
@@ -92,42 +96,43 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     n, T, dt = sc.n, cfg.steps, preset.dt_s
     plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset, cfg.physics_dt_s), cfg.seed)
     f32 = as_f32 if cfg.link_float32 else (lambda x: np.asarray(x, dtype=float))
-    dest4 = np.concatenate([sc.destination_m, np.zeros((n, 2))], axis=1)
 
     pos = np.empty((T + 1, n, 2)); vel = np.empty((T + 1, n, 2)); acc_log = np.empty((T, n, 2))
     comm = np.zeros((T + 1, n), dtype=np.int64); grad = np.zeros((T, n), dtype=np.int64)
     mfe = np.zeros((T, n), dtype=np.int64); reg = np.zeros((T, n), dtype=bool)
 
-    if cfg.mode == "mfg":
-        learner = MFGLearner(n, preset)
-        learner.initialise(f32(plant.states), sc.destination_m, np.arange(n))   # the t = 0 exchange
+    ctrl = make_controller(cfg.mode, preset, sc.destination_m)
+    ids = np.arange(n)
+    if getattr(ctrl, "uses_t0_exchange", not cfg.gossips):
+        ctrl.exchange_t0(f32(plant.states), ids, ids, sc.destination_m)       # the t = 0 exchange
         comm[0] += n - 1
-    else:
-        learner = HJBLearner(n, preset)
-    w_ref = np.empty((T + 1, learner.w_H.shape[1]))
+    sensor_range_m = getattr(ctrl, "sensor_range_m", None)
+    w_ref = np.empty((T + 1, ctrl.weights()["w_H"].shape[1]))
     bar = _Progress(T, sys.stderr.isatty() if progress is None else progress)
 
     for k in range(T):
         obs = f32(plant.states)
         pos[k], vel[k] = plant.states[:, 0:2], plant.states[:, 2:4]
-        w_ref[k] = learner.w_H[0]
-        if cfg.mode == "hjb":
+        w_ref[k] = ctrl.weights()["w_H"][0]
+        heard = sensed = None
+        if cfg.gossips:
             pairs = cKDTree(obs[:, 0:2]).query_pairs(cfg.range_m, output_type="ndarray") if n > 1 else np.zeros((0, 2), int)
-            phi_g, count = phi_G_pairs(obs, pairs, preset.cost)
-            comm[k] += count
-            info = learner.step(obs - dest4, phi_g)
-        else:
-            info = learner.step(obs - dest4)
+            heard = Neighbours.from_pairs(obs, pairs)
+            comm[k] += heard.counts(n)
+        if sensor_range_m is not None and n > 1:
+            # onboard proximity sensor: true neighbour states within its range, no communication
+            sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, 0:2]).query_pairs(sensor_range_m, output_type="ndarray"))
+        info = ctrl.step(Observation(k, k * dt, obs, heard, sensed))
         acc_cmd = f32(info.acc_m_s2)
         acc_log[k] = plant.step(acc_cmd, dt)
         grad[k], mfe[k], reg[k] = info.grad_evals, info.mf_evals, info.reg_active
         bar.update(k + 1)
     pos[T], vel[T] = plant.states[:, 0:2], plant.states[:, 2:4]
-    w_ref[T] = learner.w_H[0]
+    w_ref[T] = ctrl.weights()["w_H"][0]
 
-    traj = Trajectories(dt_s=dt, pos_m=pos, vel_m_s=vel, acc_m_s2=acc_log, dest_m=sc.destination_m.copy(),
+    traj = Trajectories(dt_s=dt, pos_m=pos, vel_m_s=vel, acc_m_s2=acc_log, dest_m=np.asarray(ctrl.destinations_m, dtype=float).copy(),
                         comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref)
-    metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.mode == "hjb" else None,
+    metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.gossips else None,
                               seed=cfg.seed, wall_s=time.perf_counter() - t_wall, scenario=sc.name,
                               preset=preset.name, path="sim")
     return traj, metrics
