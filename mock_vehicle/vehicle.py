@@ -291,8 +291,8 @@ class MockVehicle:
                 self._on_param(msg, port)
             elif isinstance(msg, BadData):
                 self.rejects.reject("bad packet", f"{msg.reason} ({msg.n_bytes} bytes)")
-            elif isinstance(msg, (Heartbeat, UnknownMessage)):
-                pass
+            elif isinstance(msg, UnknownMessage):
+                self.rejects.reject("unknown message", f"id {msg.msg_id} ({msg.name}) from {r.src_system}/{r.src_component}")
         except Exception:  # a bug must not kill the vehicle; say so loudly
             log.exception("error handling %s from %d/%d", type(msg).__name__, r.src_system, r.src_component)
 
