@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-__all__ = ["free_udp_port", "free_udp_ports", "Proc", "spawn", "wait_until", "mock_vehicle_cmd", "PYTHON", "VENV_BIN"]
+__all__ = ["free_udp_port", "free_udp_ports", "Proc", "spawn", "wait_until", "mock_vehicle_cmd", "running_mock_vehicle", "MockVehicleProc", "PYTHON", "VENV_BIN"]
 
 PYTHON = sys.executable
 VENV_BIN = Path(sys.executable).parent
@@ -141,3 +141,35 @@ def mock_vehicle_cmd(onboard_port: int, *extra: str, instance: int = 0, gcs: str
         "--gcs-url", gcs,
         *extra,
     ]  # fmt: skip
+
+
+class MockVehicleProc:
+    """A running ``mock-vehicle``: its process, the UDP ports it sends its onboard and GCS
+    links to (``udpin:127.0.0.1:<port>`` there to talk to it), and its log."""
+
+    def __init__(self, proc: Proc, onboard_port: int, gcs_port: int | None) -> None:
+        self.proc = proc
+        self.onboard_port = onboard_port
+        self.gcs_port = gcs_port
+
+    @property
+    def onboard_url(self) -> str:
+        return f"udpin:127.0.0.1:{self.onboard_port}"
+
+    @property
+    def gcs_url(self) -> str:
+        return f"udpin:127.0.0.1:{self.gcs_port}"
+
+    def log_text(self) -> str:
+        return self.proc.log_text()
+
+
+@contextlib.contextmanager
+def running_mock_vehicle(*extra: str, instance: int = 0, gcs: bool = False, log_dir: Path | None = None,
+                         stop_signal: int = signal.SIGTERM) -> Iterator[MockVehicleProc]:
+    """Start a mock vehicle on free loopback ports for the ``with`` block; always stopped."""
+    ports = free_udp_ports(2)
+    gcs_port = ports[1] if gcs else None
+    argv = mock_vehicle_cmd(ports[0], *extra, instance=instance, gcs="none" if gcs_port is None else f"udpout:127.0.0.1:{gcs_port}")
+    with spawn(argv, log_dir=log_dir, name=f"mock{instance}", stop_signal=stop_signal) as proc:
+        yield MockVehicleProc(proc, ports[0], gcs_port)
