@@ -24,10 +24,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.set_defaults(zenoh_mode="router")
     settings = ZenohSettings.from_args(parser.parse_args(argv))
     stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+
+    def on_ready() -> None:
+        # installed after the session is open: opening it may replace signal handlers
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+        print("ready", flush=True)
+
     try:
-        run_router(settings, stop, on_ready=lambda: print("ready", flush=True))
+        run_router(settings, stop, on_ready=on_ready)
     except ExchangeError as e:
         print(f"zenoh_router: {e}", file=sys.stderr)
         return 1
