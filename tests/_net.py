@@ -80,7 +80,8 @@ class Proc:
         return self.popen.poll() is None
 
     def log_text(self) -> str:
-        self._log_file.flush()
+        if not self._log_file.closed:
+            self._log_file.flush()
         return self.log_path.read_text(errors="replace")
 
     def wait_log(self, needle: str, timeout_s: float) -> str:
