@@ -1,0 +1,97 @@
+"""`mfg-autopilot`: one vehicle's onboard controller process (issue 4).
+
+    mfg-autopilot --instance I --connect udpin:127.0.0.1:14540+I --mode {mfg,hjb} --n N ...
+
+Swapping the mock vehicle for a real PX4 is a change of ``--connect`` only. This is the only
+place that reads the command line (and the mission file); everything below gets values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+
+from .controller import MODES
+from .exchange import ZenohSettings
+from .params import radio_range_m
+from .runtime import AutopilotConfig, run_autopilot
+
+__all__ = ["main", "build_parser", "config_from_args"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mfg-autopilot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--instance", type=int, required=True, help="vehicle instance I (MAVLink system I+1, Zenoh id I)")
+    p.add_argument("--connect", default=None, help="MAVLink connection string (default udpin:127.0.0.1:14540+I); "
+                                                   "udpin:, udpout:, tcp:, or a serial device /dev/ttyX:BAUD")
+    p.add_argument("--mode", choices=MODES, default="mfg", help="mfg (Algorithm 4) or hjb (HJB_d, Algorithm 3)")
+    p.add_argument("--preset", default="paper", help="controller preset (default: paper)")
+    p.add_argument("--n", type=int, required=True, help="swarm size N (ids 0..N-1)")
+    p.add_argument("--swarm", default="swarm", help="swarm name: the Zenoh key prefix mfg/<swarm>/ (default: swarm)")
+    rng = p.add_mutually_exclusive_group()
+    rng.add_argument("--range-m", type=float, default=None, help="HJB_d radio range d, m")
+    rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P, mW (d from the path-loss model)")
+    p.add_argument("--mission", default=None, help="mission JSON: {\"sites_m\": [[x, y], ...]} one destination site per "
+                                                   "vehicle id (default: every vehicle to the origin)")
+    p.add_argument("--lockstep", action="store_true", help="one control step per simulated dt (docs/lockstep.md)")
+    p.add_argument("--steps", type=int, default=200, help="mission time limit in control steps (default: 200)")
+    p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
+                   help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
+    p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")
+    p.add_argument("--tlog", default=None, help="MAVLink .tlog of this link")
+    p.add_argument("--vehicle-timeout-s", type=float, default=30.0, help="wait for the vehicle's heartbeat and position")
+    p.add_argument("--exchange-timeout-s", type=float, default=60.0, help="wait for the swarm (t = 0 exchange / membership)")
+    p.add_argument("--gossip-timeout-s", type=float, default=10.0, help="lockstep HJB_d: wait for neighbours' states of a step")
+    p.add_argument("--step-timeout-s", type=float, default=30.0, help="lockstep: wait for the vehicle to take a step")
+    p.add_argument("--log-level", default="INFO")
+    ZenohSettings.add_cli_args(p)
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
+    sites = None
+    if args.mission:
+        try:
+            with open(args.mission, encoding="utf-8") as fh:
+                mission = json.load(fh)
+            sites = tuple((float(x), float(y)) for x, y in mission["sites_m"])
+        except FileNotFoundError:
+            raise ValueError(f"mission file {args.mission!r} not found") from None
+        except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
+            raise ValueError(f"mission file {args.mission!r} is not {{\"sites_m\": [[x, y], ...]}}: {exc}") from None
+    range_m = radio_range_m(args.power_mw) if args.power_mw is not None else args.range_m
+    hold = None if args.hold_on_arrival is None else args.hold_on_arrival == "on"
+    return AutopilotConfig(
+        instance=args.instance, connect=args.connect or f"udpin:127.0.0.1:{14540 + args.instance}", mode=args.mode,
+        preset=args.preset, n=args.n, swarm=args.swarm, range_m=range_m, sites_m=sites, lockstep=args.lockstep,
+        steps=args.steps, hold_on_arrival=hold, log_path=args.log, tlog_path=args.tlog, zenoh=ZenohSettings.from_args(args),
+        vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
+        gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+                        format=f"%(asctime)s mfg-autopilot[{args.instance}] %(levelname)s %(message)s", stream=sys.stderr)
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        logging.getLogger("mfg_autopilot").error("%s", exc)
+        return 2
+    stop = threading.Event()
+
+    def on_signal(signum, _frame) -> None:
+        logging.getLogger("mfg_autopilot").info("signal %d: commanding HOLD and stopping", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    return run_autopilot(cfg, stop)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

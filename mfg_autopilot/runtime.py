@@ -1,0 +1,347 @@
+"""The per-vehicle controller process: MAVLink link + swarm exchange + controller core.
+
+Data flows one way: telemetry (LOCAL_POSITION_NED) -> Observation -> controller bank of one
+-> acceleration setpoint (SET_POSITION_TARGET_LOCAL_NED). Neighbour states come in through
+the Zenoh exchange (``mfg_autopilot.exchange``); the MAVLink link is ``mavlink_bridge``.
+
+Sequence (issue 4): wait for the vehicle's heartbeat and first position -> join the swarm
+(MFG: the t = 0 exchange; HJB_d: wait until all N are present) -> stream setpoints, arm,
+OFFBOARD -> control loop -> HOLD on the way out (mission over, arrived, signal, error).
+
+Clocks:
+- lockstep: one control step per simulated dt. The vehicle's LOCAL_POSITION_NED stamped
+  t_k gives the state; the setpoint for that step is stamped t_k (docs/lockstep.md), and the
+  vehicle answers with the position stamped t_k+1.
+- real time: a control step every dt of wall time, triggered by the first fresh
+  LOCAL_POSITION_NED after the tick; the setpoint is sent at once and then held by a 20 Hz
+  stream until the next step. If telemetry goes stale the stream stops (the vehicle's own
+  offboard-loss failsafe takes over) and restarts when telemetry returns.
+
+The log (JSON Lines, docs/controller_log.md) is flushed after every record.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mavlink_bridge import BridgeError, LocalPositionNed, TelemetryTimeout, VehicleLink
+
+from .controller import Neighbours, Observation, make_controller
+from .exchange import SwarmExchange, ZenohSettings
+from .params import preset_by_name
+
+__all__ = ["AutopilotConfig", "ControllerLog", "run_autopilot", "LOCKSTEP_PRESTREAM_TIME_BOOT_MS", "AutopilotError"]
+
+log = logging.getLogger("mfg_autopilot")
+
+LOCKSTEP_PRESTREAM_TIME_BOOT_MS = 0xFFFFFFFF
+"""Stamp of the setpoints streamed during the OFFBOARD handshake in lockstep: never a
+simulated time, so they satisfy PX4's stream check without advancing the world."""
+
+
+class AutopilotError(RuntimeError):
+    """A failure of the controller process, with what failed and what to do."""
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    instance: int
+    connect: str
+    mode: str
+    preset: str = "paper"
+    n: int = 1
+    swarm: str = "swarm"
+    range_m: float | None = None
+    sites_m: tuple[tuple[float, float], ...] | None = None   # every vehicle's destination site (N)
+    lockstep: bool = False
+    steps: int = 200
+    hold_on_arrival: bool | None = None        # default: on in real time, off in lockstep
+    arrival_tol_m: float = 1.0
+    arrival_hold_s: float = 5.0
+    log_path: str | None = None
+    tlog_path: str | None = None
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    vehicle_timeout_s: float = 30.0
+    exchange_timeout_s: float = 60.0
+    gossip_timeout_s: float = 10.0
+    step_timeout_s: float = 30.0
+    step_retry_s: float = 0.5
+    command_timeout_s: float = 10.0
+    telemetry_stale_s: float = 0.5
+    setpoint_rate_hz: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.n < 1:
+            raise ValueError(f"--n must be >= 1, got {self.n}")
+        if not (0 <= self.instance < self.n):
+            raise ValueError(f"--instance {self.instance} is not a vehicle of a swarm of {self.n} (0..{self.n - 1})")
+        if self.mode.startswith("hjb") and (self.range_m is None or self.range_m < 0):
+            raise ValueError("HJB_d needs a radio range: give --range-m D or --power-mw P")
+        if self.sites_m is not None and len(self.sites_m) != self.n:
+            raise ValueError(f"the mission gives {len(self.sites_m)} destination sites for {self.n} vehicles")
+        if self.steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {self.steps}")
+
+    @property
+    def system_id(self) -> int:
+        return self.instance + 1
+
+    def sites_array(self) -> np.ndarray:
+        return np.zeros((self.n, 2)) if self.sites_m is None else np.asarray(self.sites_m, dtype=float)
+
+
+class ControllerLog:
+    """JSON Lines: one object per line, flushed after each; ``type`` is start | event | step | end."""
+
+    def __init__(self, path: str | None) -> None:
+        self._fh = None
+        if path:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            self._fh = open(path, "a", buffering=1, encoding="utf-8")
+        self._lock = threading.Lock()
+
+    def write(self, record: dict) -> None:
+        if self._fh is None:
+            return
+        line = json.dumps(record, separators=(",", ":"), allow_nan=False, default=_jsonable)
+        with self._lock:
+            self._fh.write(line + "\n")
+            self._fh.flush()
+
+    def event(self, what: str, **kw) -> None:
+        log.info("%s %s", what, " ".join(f"{k}={v}" for k, v in kw.items()))
+        self.write({"type": "event", "what": what, "wall_s": time.time(), **kw})
+
+    def close(self) -> None:
+        if self._fh is not None:
+            with self._lock:
+                self._fh.close()
+                self._fh = None
+
+
+def _jsonable(x):
+    if isinstance(x, np.ndarray):
+        return [None if not math.isfinite(v) else v for v in x.astype(float).ravel().tolist()] if x.ndim <= 1 else x.tolist()
+    if isinstance(x, (np.floating, np.integer, np.bool_)):
+        return x.item()
+    raise TypeError(f"not JSON serialisable: {type(x)}")
+
+
+def _state_of(p: LocalPositionNed) -> np.ndarray:
+    """Paper state [x, y, vx, vy] (x = north, y = east) from LOCAL_POSITION_NED."""
+    return np.array([p.x_m, p.y_m, p.vx_m_s, p.vy_m_s], dtype=float)
+
+
+class Autopilot:
+    """One vehicle's controller process, given an open link and exchange."""
+
+    def __init__(self, cfg: AutopilotConfig, link: VehicleLink, exchange: SwarmExchange, clog: ControllerLog, stop: threading.Event) -> None:
+        self.cfg, self.link, self.exchange, self.clog, self.stop = cfg, link, exchange, clog, stop
+        self.preset = preset_by_name(cfg.preset)
+        self.sites = cfg.sites_array()
+        self.ctrl = make_controller(cfg.mode, self.preset, self.sites[cfg.instance : cfg.instance + 1])
+        self.dt_s = self.preset.dt_s
+        self.dt_ms = int(round(self.dt_s * 1000))
+        self.gossips = cfg.mode.startswith("hjb")
+
+    # ---------------------------------------------------------------- phases
+    def join_swarm(self, s0: np.ndarray) -> int:
+        """MFG: the t = 0 exchange (N - 1 states). HJB_d: wait until all N are present."""
+        cfg = self.cfg
+        if getattr(self.ctrl, "uses_t0_exchange", not self.gossips):
+            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s)
+            ids = np.array(sorted(got), dtype=np.int64)
+            states = np.array([got[i].state for i in ids], dtype=float)
+            own = int(np.flatnonzero(ids == cfg.instance)[0])
+            self.ctrl.exchange_t0(states, ids, np.array([own]), self.sites[ids])
+            self.clog.event("t0_exchange", states_received=len(ids) - 1)
+            return len(ids) - 1
+        self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s)
+        self.clog.event("swarm_present", n=cfg.n)
+        return 0
+
+    def take_off(self) -> None:
+        """Stream setpoints, arm, enter OFFBOARD (typed errors from the bridge say what failed)."""
+        cfg = self.cfg
+        stamp = LOCKSTEP_PRESTREAM_TIME_BOOT_MS if cfg.lockstep else None
+        self.link.set_held_setpoint((0.0, 0.0, 0.0), stamp)
+        self.link.start_setpoint_stream(cfg.setpoint_rate_hz)
+        time.sleep(1.2)                          # PX4: >= 2 Hz for > 1 s before OFFBOARD
+        self.link.arm(cfg.command_timeout_s)
+        self.clog.event("armed")
+        self.link.start_offboard(cfg.command_timeout_s)
+        self.clog.event("offboard")
+        if cfg.lockstep:
+            self.link.stop_setpoint_stream()     # from now on one setpoint per simulated step
+
+    def _observe(self, k: int, state: np.ndarray, time_s: float) -> Observation:
+        heard = None
+        if self.gossips:
+            msgs = self.exchange.gossip(k, time_s, state, self.cfg.range_m, timeout_s=self.cfg.gossip_timeout_s,
+                                        lockstep=self.cfg.lockstep)
+            if msgs:
+                heard = Neighbours(np.array([m.state for m in msgs], dtype=float), np.zeros(len(msgs), dtype=np.int64),
+                                   np.array([m.vehicle_id for m in msgs], dtype=np.int64))
+            else:
+                heard = Neighbours.empty()
+        return Observation(k, time_s, state[None, :], heard, None)
+
+    def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation, latency_s: float | None) -> None:
+        w = self.ctrl.weights()
+        rec = {"type": "step", "step": k, "time_s": t_s, "state": state, "acc_m_s2": acc,
+               "grad_evals": int(info.grad_evals[0]), "mf_evals": int(info.mf_evals[0]),
+               "reg_active": bool(info.reg_active[0]), "residual": float(info.residual[0]) if math.isfinite(info.residual[0]) else None,
+               "states_received": 0 if obs.neighbours is None else int(obs.neighbours.states.shape[0]),
+               "heard_ids": [] if obs.neighbours is None or obs.neighbours.ids is None else obs.neighbours.ids.tolist(),
+               "w_H": w["w_H"][0]}
+        if "w_F" in w:
+            rec["w_F"] = w["w_F"][0]
+        if latency_s is not None:
+            rec["latency_ms"] = latency_s * 1e3
+        self.clog.write(rec)
+
+    def _arrived(self, state: np.ndarray) -> bool:
+        dest = np.asarray(self.ctrl.destinations_m, dtype=float)[0]
+        return bool(np.linalg.norm(state[:2] - dest) <= self.cfg.arrival_tol_m)
+
+    # ---------------------------------------------------------------- loops
+    def run_lockstep(self, p0: LocalPositionNed) -> str:
+        cfg = self.cfg
+        p = p0
+        for k in range(cfg.steps):
+            if self.stop.is_set():
+                return "signal"
+            t_ms = p.time_boot_ms
+            state = _state_of(p)
+            obs = self._observe(k, state, t_ms / 1000.0)
+            info = self.ctrl.step(obs)
+            acc = np.asarray(info.acc_m_s2[0], dtype=float)
+            self._record(k, t_ms / 1000.0, state, acc, info, obs, None)
+            p = self._lockstep_exchange_setpoint(acc, t_ms)
+        return "mission_time"
+
+    def _lockstep_exchange_setpoint(self, acc: np.ndarray, t_ms: int) -> LocalPositionNed:
+        """Send the step's setpoint stamped t_ms and wait for the position stamped after it,
+        re-sending on silence (UDP loss); the vehicle ignores duplicates."""
+        deadline = time.monotonic() + self.cfg.step_timeout_s
+        while True:
+            self.link.send_acc_setpoint((float(acc[0]), float(acc[1]), 0.0), t_ms)
+            try:
+                return self.link.wait_local_position(t_ms, timeout_s=self.cfg.step_retry_s)
+            except TelemetryTimeout:
+                if time.monotonic() > deadline or self.stop.is_set():
+                    raise AutopilotError(f"vehicle {self.cfg.system_id} did not advance past t = {t_ms} ms within "
+                                         f"{self.cfg.step_timeout_s} s of lockstep setpoints; is it still in OFFBOARD?") from None
+
+    def run_realtime(self) -> str:
+        cfg = self.cfg
+        hold_on_arrival = True if cfg.hold_on_arrival is None else cfg.hold_on_arrival
+        next_tick = time.monotonic()
+        arrived_since = None
+        stale = False
+        for k in range(cfg.steps):
+            while not self.stop.is_set() and time.monotonic() < next_tick:
+                self.stop.wait(min(0.05, next_tick - time.monotonic()))
+            if self.stop.is_set():
+                return "signal"
+            next_tick += self.dt_s
+            tick = time.monotonic()
+            last = self.link.latest_local_position()
+            try:
+                p = self.link.wait_local_position(None if last is None else last.time_boot_ms, timeout_s=cfg.telemetry_stale_s)
+            except TelemetryTimeout:
+                if not stale:
+                    stale = True
+                    self.link.stop_setpoint_stream()
+                    self.clog.event("telemetry_stale", age_s=self.link.telemetry_age_s(),
+                                    note="setpoints stopped; the vehicle's offboard-loss failsafe takes over")
+                continue
+            if stale:
+                stale = False
+                self.clog.event("telemetry_back")
+                self._resume_offboard()
+            state = _state_of(p)
+            obs = self._observe(k, state, p.time_boot_ms / 1000.0)
+            info = self.ctrl.step(obs)
+            acc = np.asarray(info.acc_m_s2[0], dtype=float)
+            sp = (float(acc[0]), float(acc[1]), 0.0)
+            self.link.set_held_setpoint(sp)
+            self.link.send_acc_setpoint(sp)
+            latency = time.monotonic() - p.received_monotonic_s
+            self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
+            if time.monotonic() - tick > self.dt_s:
+                log.warning("control step %d took %.3f s > dt = %.3f s", k, time.monotonic() - tick, self.dt_s)
+            if hold_on_arrival and self._arrived(state):
+                arrived_since = arrived_since if arrived_since is not None else p.time_boot_ms / 1000.0
+                if p.time_boot_ms / 1000.0 - arrived_since >= cfg.arrival_hold_s:
+                    return "arrived"
+            else:
+                arrived_since = None
+        return "mission_time"
+
+    def _resume_offboard(self) -> None:
+        self.link.start_setpoint_stream(self.cfg.setpoint_rate_hz)
+        hb = self.link.latest_heartbeat()
+        if hb is None or not hb.is_offboard:
+            time.sleep(1.2)
+            try:
+                self.link.start_offboard(self.cfg.command_timeout_s)
+                self.clog.event("offboard", resumed=True)
+            except BridgeError as exc:
+                self.clog.event("offboard_resume_failed", error=str(exc))
+
+
+def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> int:
+    """Run one vehicle's controller to the end of its mission. Returns a process exit code."""
+    stop = stop or threading.Event()
+    clog = ControllerLog(cfg.log_path)
+    clog.write({"type": "start", "wall_s": time.time(), "config": {k: (v if not isinstance(v, ZenohSettings) else vars(v))
+                                                                     for k, v in vars(cfg).items()}})
+    link = None
+    reason = "error"
+    try:
+        link = VehicleLink.open(cfg.connect, target_system=cfg.system_id, target_component=1,
+                                source_system=cfg.system_id, tlog_path=cfg.tlog_path)
+        link.wait_heartbeat(cfg.vehicle_timeout_s)
+        clog.event("vehicle_found", system_id=cfg.system_id)
+        p0 = link.wait_local_position(None, cfg.vehicle_timeout_s)
+        s0 = _state_of(p0)
+        with SwarmExchange(cfg.zenoh, _swarm_key(cfg.swarm), cfg.instance, cfg.n) as exchange:
+            ap = Autopilot(cfg, link, exchange, clog, stop)
+            n_t0 = ap.join_swarm(s0)
+            if stop.is_set():
+                reason = "signal"
+            else:
+                ap.take_off()
+                reason = ap.run_lockstep(p0) if cfg.lockstep else ap.run_realtime()
+            clog.write({"type": "end", "reason": reason, "wall_s": time.time(),
+                        "states_received_total": int(exchange.states_received_total),
+                        "states_received_t0": n_t0,
+                        "destination_m": np.asarray(ap.ctrl.destinations_m, dtype=float)[0]})
+        return 0
+    except (BridgeError, AutopilotError, TimeoutError, ValueError) as exc:
+        clog.event("error", error=f"{type(exc).__name__}: {exc}")
+        log.error("%s: %s", type(exc).__name__, exc)
+        return 1
+    finally:
+        if link is not None:
+            try:
+                if reason != "error" or link.latest_heartbeat() is not None:
+                    link.hold(cfg.command_timeout_s if reason != "error" else 3.0)
+                    clog.event("hold", reason=reason)
+            except BridgeError as exc:
+                clog.event("hold_failed", error=str(exc))
+            link.close()
+        clog.close()
+
+
+def _swarm_key(name: str) -> str:
+    return name

@@ -1,0 +1,352 @@
+"""`mfg-swarm run`: a whole swarm as separate processes on one machine (issue 6).
+
+N ``mock-vehicle`` processes (PX4-like, MAVLink over loopback UDP) and N ``mfg-autopilot``
+processes (one controller per vehicle), the controllers meeting over Zenoh (peer mode on
+loopback by default; ``--zenoh-router`` runs a router and the controllers as clients).
+The launcher waits for the mission to end, stops everything, and writes to the output
+folder: metrics.json (same keys as ``mfg-swarm sim``, computed from the vehicles' tlogs),
+trajectories.npz, every vehicle's tlog, every controller's log, and every process's stderr.
+
+Ctrl-C (or SIGTERM) stops the whole swarm cleanly: controllers first (each commands HOLD
+and closes its log), then vehicles (each closes its tlog), then the router; a child that
+does not exit in time is killed. The results folder then says it is partial.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mfg_autopilot.params import preset_by_name
+
+from .flightlog import lockstep_grid, read_controller_log, read_vehicle_tlog, realtime_grid
+from .results import Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
+from .scenarios import Scenario
+from .sim import plant_params_for
+
+__all__ = ["RunConfig", "run_swarm", "LaunchError"]
+
+
+class LaunchError(RuntimeError):
+    """The swarm could not be started or run; the message says what and how to fix it."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    scenario: Scenario
+    mode: str
+    preset_name: str
+    out: Path
+    seed: int = 0
+    steps: int = 200
+    range_m: float | None = None
+    lockstep: bool = True
+    zenoh_router: bool = False
+    mavlink_base_port: int | None = None     # None: pick free ports; else base + I (PX4: 14540)
+    zenoh_base_port: int | None = None
+    gcs_url: str = "none"
+    physics_dt_s: float = 0.1
+    time_limit_s: float | None = None
+    startup_timeout_s: float = 120.0
+    progress: bool | None = None
+    extra_controller_args: tuple[str, ...] = ()
+    python: str = field(default_factory=lambda: sys.executable)
+
+
+def _free_ports(kind: int, n: int) -> list[int]:
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET, kind)
+            s.bind(("127.0.0.1", 0))
+            socks.append(s)
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def _check_ports_free(kind: int, ports: list[int], what: str) -> None:
+    for p in ports:
+        with socket.socket(socket.AF_INET, kind) as s:
+            try:
+                s.bind(("127.0.0.1", p))
+            except OSError:
+                raise LaunchError(f"{what} port {p} on 127.0.0.1 is in use: stop what holds it "
+                                  f"(e.g. another swarm or PX4 SITL), or choose another base port") from None
+
+
+class _Child:
+    def __init__(self, name: str, argv: list[str], log_path: Path) -> None:
+        self.name, self.argv, self.log_path = name, argv, log_path
+        self._fh = open(log_path, "wb")
+        self.p = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                  start_new_session=True)
+
+    def alive(self) -> bool:
+        return self.p.poll() is None
+
+    def signal(self, sig: int) -> None:
+        if self.alive():
+            try:
+                os.killpg(self.p.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def _stop_all(children: list[_Child], sig: int, timeout_s: float) -> list[str]:
+    """Signal children, wait up to timeout_s, SIGKILL the rest. Returns the killed names."""
+    for c in children:
+        c.signal(sig)
+    deadline = time.monotonic() + timeout_s
+    for c in children:
+        try:
+            c.p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+    killed = []
+    for c in children:
+        if c.alive():
+            c.signal(signal.SIGKILL)
+            killed.append(c.name)
+            try:
+                c.p.wait(5.0)
+            except subprocess.TimeoutExpired:
+                pass
+        c.close()
+    return killed
+
+
+class _Progress:
+    def __init__(self, enabled: bool, n: int) -> None:
+        self.enabled, self.n, self.last = enabled, n, 0.0
+
+    def show(self, text: str, force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if force or now - self.last > 0.5:
+            self.last = now
+            sys.stderr.write("\r" + text.ljust(100)[:120])
+            sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+
+
+def _controller_status(paths: list[Path], offsets: list[int], state: list[dict]) -> None:
+    """Read new lines of each controller log (incrementally) into state[i]."""
+    for i, p in enumerate(paths):
+        try:
+            with open(p, "rb") as fh:
+                fh.seek(offsets[i])
+                data = fh.read()
+        except FileNotFoundError:
+            continue
+        cut = data.rfind(b"\n")
+        if cut < 0:
+            continue
+        offsets[i] += cut + 1
+        for line in data[: cut + 1].splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if rec.get("type") == "event":
+                state[i][rec["what"]] = True
+            elif rec.get("type") == "step":
+                state[i]["step"] = rec["step"]
+                state[i]["time_s"] = rec["time_s"]
+            elif rec.get("type") == "end":
+                state[i]["end"] = rec.get("reason")
+
+
+def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
+    """Fly the swarm as processes; return (output folder, metrics)."""
+    sc = cfg.scenario
+    n = sc.n
+    if n < 1 or n > 253:
+        raise LaunchError(f"N = {n} is impossible for a process swarm: MAVLink system ids allow 1..253 vehicles")
+    preset = preset_by_name(cfg.preset_name)
+    out = Path(cfg.out)
+    for sub in ("vehicles", "controllers", "stderr"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    status_path = out / "STATUS.json"
+    write_json_atomic(status_path, {"state": "running", "partial": True, "started_unix_s": time.time()})
+    mission = {"sites_m": sc.destination_m.tolist()}
+    write_json_atomic(out / "mission.json", mission)
+
+    if cfg.mavlink_base_port is None:
+        mav_ports = _free_ports(socket.SOCK_DGRAM, n)
+    else:
+        mav_ports = [cfg.mavlink_base_port + i for i in range(n)]
+        _check_ports_free(socket.SOCK_DGRAM, mav_ports, "MAVLink onboard")
+    if cfg.zenoh_base_port is None:
+        z_ports = _free_ports(socket.SOCK_STREAM, n + 1)
+    else:
+        z_ports = [cfg.zenoh_base_port + i for i in range(n + 1)]
+        _check_ports_free(socket.SOCK_STREAM, z_ports, "Zenoh")
+
+    py = cfg.python
+    wind = plant_params_for(preset, cfg.physics_dt_s).wind
+    children: list[_Child] = []
+    router: list[_Child] = []
+    controllers: list[_Child] = []
+    vehicles: list[_Child] = []
+    interrupted = {"sig": None}
+
+    def on_signal(signum, _frame):
+        interrupted["sig"] = signum
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    bar = _Progress(sys.stderr.isatty() if cfg.progress is None else cfg.progress, n)
+    t_start = time.perf_counter()
+    killed: list[str] = []
+    try:
+        if cfg.zenoh_router:
+            router.append(_Child("zenoh-router", [py, "-m", "mfg_autopilot.zenoh_router", "--zenoh-listen",
+                                                  f"tcp/127.0.0.1:{z_ports[n]}"], out / "stderr" / "zenoh-router.log"))
+        for i in range(n):
+            x, y = (float(v) for v in sc.initial_pos_m[i])
+            argv = [py, "-m", "mock_vehicle.cli", "--instance", str(i), "--onboard-url", f"udpout:127.0.0.1:{mav_ports[i]}",
+                    "--gcs-url", cfg.gcs_url, "--initial-pos-m", f"{x!r},{y!r}", "--seed", str(cfg.seed),
+                    "--c0", repr(float(wind.c0_per_s)), "--mean-wind", ",".join(repr(float(v)) for v in wind.mean_wind_m_s),
+                    "--wind-diffusion", ",".join(repr(float(v)) for row in wind.wind_diffusion_m_s for v in row),
+                    "--acc-limit-m-s2", repr(float(preset.learner.acc_max_m_s2)), "--physics-dt-s", repr(float(cfg.physics_dt_s)),
+                    "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
+            if cfg.lockstep:
+                argv.append("--lockstep")
+            vehicles.append(_Child(f"vehicle{i}", argv, out / "stderr" / f"vehicle{i}.log"))
+        ctrl_logs = [out / "controllers" / f"controller{i}.jsonl" for i in range(n)]
+        for i in range(n):
+            argv = [py, "-m", "mfg_autopilot.cli", "--instance", str(i), "--connect", f"udpin:127.0.0.1:{mav_ports[i]}",
+                    "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", f"run{os.getpid()}",
+                    "--mission", str(out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
+                    "--log-level", "WARNING", "--exchange-timeout-s", repr(cfg.startup_timeout_s)]
+            if cfg.range_m is not None:
+                argv += ["--range-m", repr(float(cfg.range_m))]
+            if cfg.lockstep:
+                argv.append("--lockstep")
+            if cfg.zenoh_router:
+                argv += ["--zenoh-mode", "client", "--zenoh-connect", f"tcp/127.0.0.1:{z_ports[n]}"]
+            else:
+                argv += ["--zenoh-listen", f"tcp/127.0.0.1:{z_ports[i]}"]
+                if i > 0:
+                    argv += ["--zenoh-connect", f"tcp/127.0.0.1:{z_ports[0]}"]
+            argv += list(cfg.extra_controller_args)
+            controllers.append(_Child(f"controller{i}", argv, out / "stderr" / f"controller{i}.log"))
+        children = router + vehicles + controllers
+
+        # ---- wait for the mission to end, showing progress
+        offsets = [0] * n
+        status = [dict() for _ in range(n)]
+        limit = cfg.time_limit_s if cfg.time_limit_s is not None else (
+            cfg.startup_timeout_s + (cfg.steps * preset.dt_s * 2 + 60 if not cfg.lockstep else 30 + cfg.steps * 2.0 * max(1, n / 10)))
+        deadline = time.monotonic() + limit
+        reason = "completed"
+        while True:
+            _controller_status(ctrl_logs, offsets, status)
+            done = [not c.alive() for c in controllers]
+            armed = sum(1 for s in status if s.get("armed"))
+            offb = sum(1 for s in status if s.get("offboard"))
+            ended = sum(done)
+            sim_t = max((s.get("time_s", 0.0) for s in status), default=0.0)
+            bar.show(f"  N={n} {cfg.mode}: armed {armed}/{n}  offboard {offb}/{n}  finished {ended}/{n}  t_sim={sim_t:.0f} s"
+                     f"  wall={time.perf_counter() - t_start:.0f} s")
+            if all(done):
+                break
+            if interrupted["sig"] is not None:
+                reason = "interrupted"
+                break
+            dead_vehicles = [v.name for v in vehicles if not v.alive()]
+            if dead_vehicles:
+                reason = f"vehicle process exited early: {', '.join(dead_vehicles)}"
+                break
+            if time.monotonic() > deadline:
+                reason = f"time limit {limit:.0f} s"
+                break
+            time.sleep(0.2)
+        bar.show("", force=True)
+        bar.done()
+        killed += _stop_all(controllers, signal.SIGTERM, 20.0)
+        killed += _stop_all(vehicles, signal.SIGTERM, 10.0)
+        killed += _stop_all(router, signal.SIGTERM, 5.0)
+    finally:
+        if any(c.alive() for c in children):
+            killed += _stop_all([c for c in children if c.alive()], signal.SIGKILL, 5.0)
+        for s, h in old.items():
+            signal.signal(s, h)
+
+    wall_s = time.perf_counter() - t_start
+    exit_codes = {c.name: c.p.returncode for c in controllers}
+    traj, metrics = _collect(cfg, preset, n, out, wall_s)
+    partial = reason != "completed" or any(code != 0 for code in exit_codes.values())
+    metrics.update({"path": "processes", "lockstep": cfg.lockstep, "partial": partial, "end_reason": reason,
+                    "controller_exit_codes": exit_codes, "killed": killed})
+    write_npz_atomic(out / "trajectories.npz", traj.arrays())
+    write_json_atomic(out / "metrics.json", metrics)
+    write_json_atomic(status_path, {"state": "complete" if not partial else "partial", "partial": partial,
+                                    "reason": reason, "killed": killed, "wall_s": wall_s})
+    return out, metrics
+
+
+def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[Trajectories, dict]:
+    """Trajectories from the vehicles' tlogs; counts from the controllers' logs."""
+    T = cfg.steps
+    dt = preset.dt_s
+    dt_ms = int(round(dt * 1000))
+    states = np.full((T + 1, n, 4), np.nan)
+    acc = np.full((T, n, 2), np.nan)
+    tracks = [read_vehicle_tlog(out / "vehicles" / f"vehicle{i}.tlog", i + 1) for i in range(n)]
+    logs = [read_controller_log(out / "controllers" / f"controller{i}.jsonl") for i in range(n)]
+    if cfg.lockstep:
+        for i, tr in enumerate(tracks):
+            _, states[:, i], acc[:, i] = lockstep_grid(tr, dt_ms, T)
+    else:
+        starts = [e["wall_s"] for lg in logs for e in lg.events if e.get("what") == "offboard"]
+        t0 = min(starts) if starts else min((tr.pos_unix_s[0] for tr in tracks if tr.pos_unix_s.size), default=0.0)
+        for i, tr in enumerate(tracks):
+            states[:, i], acc[:, i] = realtime_grid(tr, t0, dt, T)
+    # steps the swarm actually flew: the longest prefix with every vehicle's state known
+    known = ~np.isnan(states[:, :, 0]).any(axis=1)
+    flown = int(np.argmin(known)) if not known.all() else T + 1
+    T_eff = max(flown - 1, 0)
+    states, acc = states[: T_eff + 1], np.nan_to_num(acc[:T_eff])
+    comm = np.zeros((T_eff + 1, n), dtype=np.int64)
+    grad = np.zeros((T_eff, n), dtype=np.int64)
+    mfe = np.zeros((T_eff, n), dtype=np.int64)
+    reg = np.zeros((T_eff, n), dtype=bool)
+    dest = np.array(json.loads((out / "mission.json").read_text())["sites_m"], dtype=float).reshape(n, 2)
+    for i, lg in enumerate(logs):
+        for ev in lg.events:
+            if ev.get("what") == "t0_exchange":
+                comm[0, i] += int(ev.get("states_received", 0))
+        for rec in lg.steps:
+            k = rec["step"]
+            if k < T_eff:
+                comm[k, i] += rec.get("states_received", 0)
+                grad[k, i] = rec.get("grad_evals", 0)
+                mfe[k, i] = rec.get("mf_evals", 0)
+                reg[k, i] = rec.get("reg_active", False)
+        if lg.end is not None and lg.end.get("destination_m") is not None:
+            dest[i] = lg.end["destination_m"]
+    w_ref = np.array([rec["w_H"] for rec in logs[0].steps[: T_eff + 1]], dtype=float) if logs and logs[0].steps else None
+    traj = Trajectories(dt_s=dt, pos_m=states[:, :, 0:2], vel_m_s=states[:, :, 2:4], acc_m_s2=acc, dest_m=dest,
+                        comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref)
+    metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.mode.startswith("hjb") else None,
+                              seed=cfg.seed, wall_s=wall_s, scenario=cfg.scenario.name, preset=preset.name)
+    metrics["steps_requested"] = T
+    return traj, metrics
