@@ -15,6 +15,7 @@ another target, and ``target_system`` 0 (broadcast) is refused at open.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
 import threading
@@ -97,6 +98,7 @@ class VehicleLink:
         self._acks: collections.deque[CommandAck] = collections.deque(maxlen=64)
         self._params: dict[str, ParamValue] = {}
         self._closed = threading.Event()
+        self._command_lock = threading.Lock()
         self._t0 = time.monotonic()
         self.n_ignored_other_system = 0
         self.n_bad = 0
@@ -302,7 +304,7 @@ class VehicleLink:
                 with self._cond:
                     sp, t_ms = self._held, self._held_time_boot_ms
                 if sp is not None:
-                    sp_t = sp if t_ms is not None else SetPositionTargetLocalNed(**{**sp.__dict__, "time_boot_ms": self.time_boot_ms()})
+                    sp_t = sp if t_ms is not None else dataclasses.replace(sp, time_boot_ms=self.time_boot_ms())
                     try:
                         self._send(sp_t)
                     except LinkClosed:
@@ -330,6 +332,10 @@ class VehicleLink:
         """Send COMMAND_LONG and wait for its COMMAND_ACK (retransmitting every
         ``command_retry_interval_s``; IN_PROGRESS keeps waiting). Raises CommandTimeout,
         or CommandDenied for any result other than ACCEPTED."""
+        with self._command_lock:  # one command in flight at a time (acks carry no sequence)
+            return self._command_long(int(command), params, timeout_s)
+
+    def _command_long(self, command: int, params: tuple[float, ...], timeout_s: float) -> CommandAck:
         p = tuple(float(x) for x in params) + (0.0,) * (7 - len(params))
         deadline = time.monotonic() + timeout_s
         confirmation = 0
@@ -418,7 +424,8 @@ class VehicleLink:
         return self._arm_disarm(False, timeout_s, force=force)
 
     def set_message_interval(self, msg_id: int, interval_s: float, timeout_s: float) -> CommandAck:
-        """MAV_CMD_SET_MESSAGE_INTERVAL (511); ``interval_s`` <= 0 disables the message... -1 in us."""
+        """MAV_CMD_SET_MESSAGE_INTERVAL (511): ``interval_s`` > 0 sets the period, 0 restores
+        the default, < 0 disables the message (-1 us on the wire)."""
         interval_us = -1.0 if interval_s < 0 else interval_s * 1e6
         return self.command_long(MavCmd.SET_MESSAGE_INTERVAL, (msg_id, interval_us), timeout_s)
 

@@ -235,3 +235,33 @@ def test_link_ignores_other_systems():
         finally:
             other.close()
             me.close()
+
+
+def test_mode_change_acked_but_never_seen_is_mode_not_confirmed():
+    """A vehicle that ACKs DO_SET_MODE but keeps reporting HOLD in its HEARTBEAT."""
+    import threading
+
+    from mavlink_bridge import ModeNotConfirmed
+
+    fake = _FakeVehicle(sysid=1)
+    stop = threading.Event()
+
+    def serve():
+        while not stop.is_set():
+            for r in fake.received(0.05):
+                if isinstance(r.msg, CommandLong):
+                    fake.sock.sendto(fake.codec.encode(CommandAck(r.msg.command, 0, r.src_system, r.src_component)), fake.addr)
+            if hasattr(fake, "addr"):
+                fake.sock.sendto(fake.codec.encode(Heartbeat(base_mode=1, custom_mode=PX4_HOLD.custom_mode)), fake.addr)
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    try:
+        with VehicleLink.open(f"udpout:127.0.0.1:{fake.port}", target_system=1) as link:
+            link.wait_heartbeat(timeout_s=3.0)
+            with pytest.raises(ModeNotConfirmed, match="OFFBOARD not confirmed.*last seen: AUTO.LOITER"):
+                link.set_mode(PX4_OFFBOARD, timeout_s=0.8)
+    finally:
+        stop.set()
+        th.join(2.0)
+        fake.close()

@@ -1,0 +1,185 @@
+"""MockVehicle's PX4 behaviour without sockets: a fake clock and a list for what it sends."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mavlink_bridge import (
+    PX4_HOLD,
+    PX4_OFFBOARD,
+    CommandAck,
+    CommandLong,
+    Heartbeat,
+    LocalPositionNed,
+    MavFrame,
+    MavResult,
+    ParamSet,
+    ParamValue,
+    Received,
+    SetPositionTargetLocalNed,
+    acceleration_setpoint,
+)
+from mock_vehicle.params import PARAM_SPECS, ParamTable
+from mock_vehicle.vehicle import MockVehicle, VehicleConfig, check_setpoint
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def make(**cfg):
+    clock, sent = Clock(), []
+    v = MockVehicle(VehicleConfig(**cfg), lambda msg, port: sent.append(msg), clock=clock)
+    return v, clock, sent
+
+
+def rx(msg, src=(1, 195)) -> Received:
+    return Received(msg, *src)
+
+
+def cmd(command, *params, target=1) -> Received:
+    p = tuple(float(x) for x in params) + (0.0,) * (7 - len(params))
+    return rx(CommandLong(target, 1, command, p))
+
+
+def acks(sent):
+    return [m for m in sent if isinstance(m, CommandAck)]
+
+
+def stream(v, clock, seconds, acc=(1.0, 0.0, 0.0), rate_hz=20.0, t_ms=0):
+    for _ in range(int(seconds * rate_hz)):
+        v.handle(rx(acceleration_setpoint(1, 1, acc, t_ms)))
+        clock.t += 1.0 / rate_hz
+        v.tick()
+
+
+@pytest.mark.parametrize(
+    "changes, kind",
+    [
+        (dict(target_system=2), "setpoint wrong target system"),
+        (dict(target_component=5), "setpoint wrong target component"),
+        (dict(coordinate_frame=MavFrame.GLOBAL), "setpoint unsupported frame"),
+        (dict(coordinate_frame=MavFrame.LOCAL_OFFSET_NED), "setpoint unsupported frame"),
+        (dict(type_mask=3135 | 512), "setpoint FORCE_SET bit"),
+        (dict(type_mask=0x01FF | 0x0C00), "setpoint ignores everything"),
+        (dict(afy_m_s2=math.inf), "setpoint non-finite field"),
+        (dict(afx_m_s2=math.nan), "setpoint non-finite field"),
+    ],
+)
+def test_px4_setpoint_filter_rejects(changes, kind):
+    sp = SetPositionTargetLocalNed(**{**acceleration_setpoint(1, 1, (1.0, 0.0, 0.0), 0).__dict__, **changes})
+    assert check_setpoint(sp, 1, 1)[0] == kind
+
+
+def test_px4_setpoint_filter_accepts_broadcast_body_ned_and_nan_in_ignored_fields():
+    base = acceleration_setpoint(0, 0, (1.0, 0.0, 0.0), 0)
+    assert check_setpoint(base, 3, 1) is None
+    sp = SetPositionTargetLocalNed(**{**base.__dict__, "coordinate_frame": MavFrame.BODY_NED, "x_m": math.nan})
+    assert check_setpoint(sp, 3, 1) is None  # x is ignored by mask 3135
+
+
+def test_offboard_gate_needs_more_than_one_second_at_2_hz():
+    v, clock, sent = make()
+    v.handle(cmd(400, 1))
+    stream(v, clock, 0.9)
+    v.handle(cmd(176, 1 | 128, 6))
+    assert acks(sent)[-1].result == MavResult.TEMPORARILY_REJECTED and v.mode == PX4_HOLD
+    stream(v, clock, 0.3)
+    v.handle(cmd(176, 1 | 128, 6))
+    assert acks(sent)[-1].result == MavResult.ACCEPTED and v.mode == PX4_OFFBOARD
+    assert acks(sent)[-1].target_system == 1 and acks(sent)[-1].target_component == 195  # to the sender
+
+
+def test_slow_stream_does_not_open_the_gate():
+    v, clock, sent = make()
+    stream(v, clock, 3.0, rate_hz=1.5)  # below 2 Hz
+    v.handle(cmd(176, 1, 6))
+    assert acks(sent)[-1].result == MavResult.TEMPORARILY_REJECTED
+
+
+def test_failsafe_after_com_of_loss_t_and_hold_keeps_position():
+    v, clock, sent = make(com_of_loss_t_s=1.0, initial_pos_m=(5.0, 5.0))
+    v.handle(cmd(400, 1))
+    stream(v, clock, 1.2)
+    v.handle(cmd(176, 1, 6))
+    stream(v, clock, 2.0)
+    assert v.mode == PX4_OFFBOARD and v.state[0] > 5.0
+    for _ in range(9):
+        clock.t += 0.1
+        v.tick()
+    assert v.mode == PX4_OFFBOARD  # 0.9 s without setpoints: still fine
+    clock.t += 0.2
+    v.tick()
+    assert v.mode == PX4_HOLD
+    hold_at = v.hold_pos_m.copy()
+    for _ in range(200):
+        clock.t += 0.1
+        v.tick()
+    assert np.linalg.norm(v.state[0:2] - hold_at) < 3.0 and np.all(np.isfinite(v.state))
+
+
+def test_frozen_until_first_offboard():
+    v, clock, sent = make(initial_pos_m=(150.0, 100.0))
+    v.handle(cmd(400, 1))
+    for _ in range(50):
+        clock.t += 0.1
+        v.tick()
+    assert tuple(v.state[0:2]) == (150.0, 100.0)
+    lp = [m for m in sent if isinstance(m, LocalPositionNed)]
+    assert lp and lp[-1].x_m == 150.0
+
+
+def test_unknown_command_is_unsupported_and_other_targets_are_ignored():
+    v, clock, sent = make()
+    v.handle(cmd(31000))
+    assert acks(sent)[-1].result == MavResult.UNSUPPORTED
+    n = len(acks(sent))
+    v.handle(cmd(400, 1, target=7))
+    assert len(acks(sent)) == n and not v.armed
+
+
+def test_lockstep_step_and_stale_setpoint():
+    v, clock, sent = make(lockstep=True, dt_s=0.5, seed=3)
+    v.handle(cmd(400, 1))
+    stream(v, clock, 1.2, t_ms=999)
+    v.handle(cmd(176, 1, 6))
+    assert v.mode == PX4_OFFBOARD and v.time_boot_ms() == 0
+    sent.clear()
+    v.handle(rx(acceleration_setpoint(1, 1, (1.0, 0.0, 0.0), 0)))
+    assert v.time_boot_ms() == 500
+    lp = [m for m in sent if isinstance(m, LocalPositionNed)]
+    assert lp[-1].time_boot_ms == 500
+    sent.clear()
+    v.handle(rx(acceleration_setpoint(1, 1, (2.0, 0.0, 0.0), 0)))  # stale
+    assert v.time_boot_ms() == 500 and sent == [lp[-1]]
+    clock.t += 100.0
+    v.tick()
+    assert v.mode == PX4_OFFBOARD  # frozen world: no failsafe
+
+
+def test_param_set_bounds_and_effect():
+    v, clock, sent = make()
+    v.handle(rx(ParamSet(1, 1, "MPC_ACC_HOR_MAX", 1.0)))
+    assert v.plant.params.acc_limit_m_s2 == 1.0
+    v.handle(rx(ParamSet(1, 1, "MPC_ACC_HOR_MAX", math.nan)))
+    v.handle(rx(ParamSet(1, 1, "NO_SUCH_PARAM", 1.0)))
+    pv = [m for m in sent if isinstance(m, ParamValue)]
+    assert [p.value for p in pv] == [1.0, 1.0] and pv[0].param_count == len(PARAM_SPECS)
+    assert v.rejects.counts == {"PARAM_SET refused": 2}
+    with pytest.raises(ValueError, match="outside"):
+        ParamTable({"COM_OF_LOSS_T": -1.0})
+
+
+def test_heartbeat_reports_px4_modes():
+    v, clock, sent = make()
+    hb = v._heartbeat()
+    assert hb.px4_mode == PX4_HOLD and not hb.armed
+    v.handle(cmd(400, 1))
+    assert [m for m in sent if isinstance(m, Heartbeat)][-1].armed
