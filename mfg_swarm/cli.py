@@ -57,6 +57,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--time-limit-s", type=float, default=None, help="stop the swarm after this wall time")
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-plot", action="store_true", help="do not draw the figures after the flight")
+
+    plot = sub.add_parser("plot", help="the paper's figures (Fig. 3, 4, 5) as PNG for a run or a folder of runs")
+    plot.add_argument("dirs", nargs="+", type=Path, help="run folders, or folders holding run folders")
+
+    rep = sub.add_parser("reproduce", help="the paper's comparison and every claim beside the measured figure (claims.md)")
+    rep.add_argument("--out", type=Path, required=True)
+    rep.add_argument("--presets", default="paper,default", help="comma-separated presets (default: paper,default)")
+    rep.add_argument("--ns", default=",".join(map(str, (9, 16, 25, 36, 49, 64, 81))), help="swarm sizes")
+    rep.add_argument("--seeds", default="0,1,2", help="seeds (default: 0,1,2)")
+    rep.add_argument("--steps", type=int, default=200)
+    rep.add_argument("--workers", type=int, default=2, help="parallel simulator processes (default: 2)")
+    rep.add_argument("--no-processes", action="store_true", help="skip the process-swarm check")
     return ap
 
 
@@ -119,6 +131,43 @@ def _cmd_run(args) -> int:
     return 1 if metrics.get("partial") else 0
 
 
+def _cmd_plot(args) -> int:
+    from .plots import find_runs, plot_energy, plot_regularizer, plot_run
+
+    made = []
+    for d in args.dirs:
+        if not d.exists():
+            raise ValueError(f"{d} does not exist")
+        runs = find_runs(d)
+        if not runs:
+            raise ValueError(f"no run in {d} (a run folder holds metrics.json and trajectories.npz)")
+        if runs == [d]:
+            made += plot_run(d)
+            continue
+        for r in runs:
+            made += plot_run(r)
+        made.append(plot_regularizer(runs, d / "fig4_regularizer.png"))
+        fig5 = plot_energy([json.loads((r / "metrics.json").read_text()) for r in runs], d / "fig5_energy.png")
+        if fig5 is not None:
+            made.append(fig5)
+    for p in made:
+        print(p)
+    return 0
+
+
+def _cmd_reproduce(args) -> int:
+    from .reproduce import reproduce
+
+    presets = [p for p in args.presets.split(",") if p]
+    for p in presets:
+        preset_by_name(p)
+    claims = reproduce(args.out, presets, ns=tuple(int(x) for x in args.ns.split(",")),
+                       seeds=tuple(int(x) for x in args.seeds.split(",")), steps=args.steps, workers=args.workers,
+                       process_check=not args.no_processes, log=lambda s: print(s, file=sys.stderr))
+    print(claims)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
@@ -128,6 +177,10 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_sim(args)
         if args.cmd == "run":
             return _cmd_run(args)
+        if args.cmd == "plot":
+            return _cmd_plot(args)
+        if args.cmd == "reproduce":
+            return _cmd_reproduce(args)
     except ValueError as exc:
         print(f"mfg-swarm: error: {exc}", file=sys.stderr)
         return 2
