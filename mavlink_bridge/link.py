@@ -24,7 +24,6 @@ from typing import Callable, TypeVar
 
 from .errors import (
     ArmNotConfirmed,
-    BridgeError,
     CommandDenied,
     CommandTimeout,
     HeartbeatTimeout,

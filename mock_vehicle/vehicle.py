@@ -68,7 +68,7 @@ from mavlink_bridge import (
 from mavlink_bridge import MSG_ID_BY_NAME
 
 from .params import ParamTable
-from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, saturate_norm
+from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 
 __all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint"]
 
