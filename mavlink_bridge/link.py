@@ -277,6 +277,23 @@ class VehicleLink:
         )
         self._send(sp)
 
+    def step_lockstep(
+        self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int, timeout_s: float, retry_interval_s: float = 0.25
+    ) -> LocalPositionNed:
+        """One lockstep control step (docs/lockstep.md): send the setpoint stamped with the
+        vehicle's current simulated ``time_boot_ms`` and return the first LOCAL_POSITION_NED
+        after it, re-sending the same setpoint every ``retry_interval_s`` (idempotent on the
+        vehicle side, so UDP loss only costs time). Raises TelemetryTimeout."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.send_acc_setpoint(acc_ned_m_s2, time_boot_ms)
+            wait_s = min(retry_interval_s, deadline - time.monotonic())
+            m = self.wait_for(LocalPositionNed, lambda p: p.time_boot_ms > time_boot_ms, max(0.0, wait_s))
+            if m is not None:
+                return m
+            if time.monotonic() >= deadline:
+                raise TelemetryTimeout(f"lockstep LOCAL_POSITION_NED after {time_boot_ms} ms", self.target_system, timeout_s)
+
     def set_held_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> None:
         """The acceleration the setpoint stream repeats (stamped ``time_boot_ms``, or the
         link clock if None). Raises ValueError for non-finite input."""

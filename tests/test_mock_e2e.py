@@ -252,15 +252,7 @@ def _drive_lockstep(seed: int, n_steps: int, tmp_path, tag: str):
             link.stop_setpoint_stream()
             samples = [start]
             for k, acc in enumerate(accs):
-                for _attempt in range(5):  # retry after UDP loss: re-sending is idempotent
-                    link.send_acc_setpoint(acc, time_boot_ms=k * dt_ms)
-                    try:
-                        samples.append(link.wait_local_position(k * dt_ms, timeout_s=1.0))
-                        break
-                    except Exception:
-                        continue
-                else:
-                    raise AssertionError(f"lockstep step {k} never answered")
+                samples.append(link.step_lockstep(acc, k * dt_ms, timeout_s=5.0))
                 assert samples[-1].time_boot_ms == (k + 1) * dt_ms
                 if k == 3:  # a stale setpoint: no step, just the latest telemetry again
                     link.send_acc_setpoint((2.0, 2.0, 0.0), time_boot_ms=0)
