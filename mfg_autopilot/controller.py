@@ -162,6 +162,8 @@ MODES = ("mfg", "hjb", "mfg-pde", "hjb-pde")
 _FACTORIES: dict[tuple[str, str], object] = {
     ("paper", "hjb"): PaperHJBController,
     ("paper", "mfg"): PaperMFGController,
+    ("paper-lqr", "hjb"): PaperHJBController,
+    ("paper-lqr", "mfg"): PaperMFGController,
 }
 
 

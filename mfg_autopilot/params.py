@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["CostParams", "RadioParams", "LearnerParams", "Preset", "PAPER", "preset_by_name", "radio_range_m"]
+__all__ = ["CostParams", "RadioParams", "LearnerParams", "Preset", "PAPER", "PAPER_LQR", "preset_by_name", "radio_range_m"]
 
 
 @dataclass(frozen=True)
@@ -98,10 +98,19 @@ PAPER = Preset(name="paper")
 require: state scaling, the action's sign, and saturation of |a|."""
 
 
+PAPER_LQR = Preset(name="paper-lqr", learner=LearnerParams(w_H_init="lqr"))
+"""The paper's algorithms with w_H(0) set to the Riccati value of the cost's LQ part
+instead of 0 (SPEC section 3: with it every UAV arrives, but they collide at the
+destination). Registered so that the effect of the warm start can be measured alone."""
+
+
 def preset_by_name(name: str) -> Preset:
-    """The preset called ``name``: ``paper`` here, others from ``mfg_autopilot.preset_<name>.PRESET``."""
+    """The preset called ``name``: ``paper`` and ``paper-lqr`` here, others from
+    ``mfg_autopilot.preset_<name>.PRESET``."""
     if name == "paper":
         return PAPER
+    if name == "paper-lqr":
+        return PAPER_LQR
     import importlib
 
     try:

@@ -1,0 +1,117 @@
+"""`mfg-swarm run`: real mock-vehicle and mfg-autopilot processes over MAVLink (UDP) and Zenoh
+on loopback. The lockstep flight must equal `mfg-swarm sim` (the processes add transport only)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import psutil
+import pytest
+
+from mfg_swarm.results import METRIC_KEYS, load_trajectories
+from mfg_swarm.sim import SimConfig, simulate
+from mfg_swarm.scenarios import make_scenario
+from mfg_autopilot.params import preset_by_name
+
+pytestmark = pytest.mark.e2e
+
+POS_TOL_M = 1e-3    # float32 telemetry rounding is the one expected source of difference
+
+
+def _run(out, *args, timeout=240):
+    proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "run", "--out", str(out), "--no-progress", "--no-plot", *args],
+                          capture_output=True, text=True, timeout=timeout)
+    return proc
+
+
+def _assert_no_children_left(before: set[int]):
+    me = psutil.Process()
+    left = [p for p in me.children(recursive=True) if p.pid not in before and p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert not left, f"processes left behind: {[p.cmdline()[:4] for p in left]}"
+
+
+@pytest.mark.parametrize("mode,range_m", [("mfg", None), ("hjb", 100.0)])
+def test_lockstep_process_swarm_equals_the_simulator(tmp_path, mode, range_m):
+    steps, n, seed = 40, 9, 3
+    args = ["--n", str(n), "--mode", mode, "--seed", str(seed), "--steps", str(steps), "--preset", "paper"]
+    if range_m is not None:
+        args += ["--range-m", str(range_m)]
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    proc = _run(tmp_path / "run", *args)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_no_children_left(before)
+    out = tmp_path / "run"
+    # every file is there
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(METRIC_KEYS) <= set(m) and m["path"] == "processes" and not m["partial"]
+    assert json.loads((out / "STATUS.json").read_text())["state"] == "complete"
+    for i in range(n):
+        assert (out / "vehicles" / f"vehicle{i}.tlog").stat().st_size > 0
+        lines = (out / "controllers" / f"controller{i}.jsonl").read_text().splitlines()
+        assert json.loads(lines[-1])["type"] in ("event", "end")
+    # the same flight as the simulator, within the float32 telemetry resolution
+    traj_p = load_trajectories(out / "trajectories.npz")
+    traj_s, m_s = simulate(SimConfig(make_scenario("paper", n), mode, preset_by_name("paper"), seed=seed, steps=steps,
+                                     range_m=range_m), progress=False)
+    assert traj_p.pos_m.shape == traj_s.pos_m.shape
+    assert np.max(np.abs(traj_p.pos_m - traj_s.pos_m)) < POS_TOL_M
+    assert np.max(np.abs(traj_p.vel_m_s - traj_s.vel_m_s)) < POS_TOL_M
+    np.testing.assert_allclose(traj_p.acc_m_s2, traj_s.acc_m_s2, atol=1e-6)
+    np.testing.assert_array_equal(traj_p.comm_states, traj_s.comm_states)
+    np.testing.assert_array_equal(traj_p.grad_evals, traj_s.grad_evals)
+    np.testing.assert_array_equal(traj_p.reg_active, traj_s.reg_active)
+    for k in ("collision_pairs", "collision_pair_steps", "arrived_fraction", "comm_states_per_uav",
+              "grad_evals_per_uav", "regularizer_activations"):
+        assert m[k] == m_s[k], k
+    assert abs(m["motion_energy_per_uav"] - m_s["motion_energy_per_uav"]) < 1e-3 * m_s["motion_energy_per_uav"]
+
+
+def test_realtime_swarm_of_four_completes(tmp_path):
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    proc = _run(tmp_path / "rt", "--n", "4", "--mode", "mfg", "--steps", "6", "--realtime", "--preset", "paper", timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    _assert_no_children_left(before)
+    m = json.loads((tmp_path / "rt" / "metrics.json").read_text())
+    assert m["lockstep"] is False and m["n"] == 4 and m["comm_states_per_uav"] == 3.0
+    traj = load_trajectories(tmp_path / "rt" / "trajectories.npz")
+    assert traj.pos_m.shape[1] == 4 and np.all(np.isfinite(traj.pos_m))
+    # the vehicles really moved under the controllers' accelerations in wall-clock time
+    assert np.all(np.linalg.norm(traj.pos_m[-1] - traj.pos_m[0], axis=1) > 1.0)
+
+
+def test_ctrl_c_stops_the_whole_swarm_and_leaves_partial_readable_results(tmp_path):
+    out = tmp_path / "int"
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    p = subprocess.Popen([sys.executable, "-m", "mfg_swarm.cli", "run", "--out", str(out), "--no-progress", "--no-plot",
+                          "--n", "4", "--mode", "mfg", "--steps", "100000", "--preset", "paper"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        def flying():
+            f = out / "controllers" / "controller0.jsonl"
+            return f.exists() and '"type":"step"' in f.read_text()
+        while not flying():
+            assert time.monotonic() < deadline, "swarm never started flying"
+            assert p.poll() is None, p.stderr.read()
+            time.sleep(0.2)
+        time.sleep(1.0)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 1, err
+    assert "PARTIAL results in" in err and str(out) in err
+    _assert_no_children_left(before)
+    status = json.loads((out / "STATUS.json").read_text())
+    assert status["partial"] is True and status["reason"] == "interrupted" and status["killed"] == []
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["partial"] is True and m["steps"] > 0
+    load_trajectories(out / "trajectories.npz")
+    for i in range(4):
+        recs = [json.loads(l) for l in (out / "controllers" / f"controller{i}.jsonl").read_text().splitlines()]
+        assert any(r.get("what") == "hold" for r in recs), f"controller {i} did not command HOLD on the way out"
