@@ -1,7 +1,13 @@
 """Mission scenarios: where the UAVs start and where each one is going.
 
-``paper`` is Sec. V: N UAVs on a square grid with sqrt(2) m spacing centred at
-(150, 100) m, all flying to the origin. Positions are (x, y) = (north, east) in metres.
+- ``paper`` is Sec. V: N UAVs on a square grid with sqrt(2) m spacing centred at
+  (150, 100) m, all flying to the origin.
+- ``crossing``: two groups (N/2 and N - N/2) on sqrt(2) m grids centred at (-60, 0) and
+  (60, 0) m; each group's site is the other's centre, so they swap sides through each other.
+- ``dense``: the paper's scenario with grid spacing 0.5 m.
+
+Positions are (x, y) = (north, east) in metres. ``destination_m`` is each UAV's mission
+*site* (shared by its group); the default controller derives each UAV's slot from it.
 """
 
 from __future__ import annotations
@@ -42,7 +48,23 @@ def _paper(n: int, spacing_m: float = np.sqrt(2.0)) -> Scenario:
     return Scenario("paper", pos, np.zeros((n, 2)), np.zeros(n, dtype=np.int64))
 
 
-SCENARIOS = {"paper": _paper}
+def _dense(n: int) -> Scenario:
+    sc = _paper(n, spacing_m=0.5)
+    return Scenario("dense", sc.initial_pos_m, sc.destination_m, sc.group)
+
+
+def _crossing(n: int, spacing_m: float = np.sqrt(2.0)) -> Scenario:
+    if n < 2:
+        raise ValueError(f"crossing needs n >= 2, got {n}")
+    na = n // 2
+    west, east = np.array([-60.0, 0.0]), np.array([60.0, 0.0])
+    pos = np.concatenate([grid_positions(na, spacing_m, west), grid_positions(n - na, spacing_m, east)])
+    dest = np.concatenate([np.tile(east, (na, 1)), np.tile(west, (n - na, 1))])
+    group = np.concatenate([np.zeros(na, dtype=np.int64), np.ones(n - na, dtype=np.int64)])
+    return Scenario("crossing", pos, dest, group)
+
+
+SCENARIOS = {"paper": _paper, "crossing": _crossing, "dense": _dense}
 
 
 def make_scenario(name: str, n: int) -> Scenario:

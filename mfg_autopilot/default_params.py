@@ -1,0 +1,104 @@
+"""Parameters of the product controller (the ``default`` preset), declared once with units.
+
+The paper's symbols keep their meaning (c0, c1, c2, c3, c4, v_o, V_o); what the paper does
+not have (slots, the interacting mean-field plan, closest-approach repulsion, the tracking
+value model, the proximity backstop) is named here with its unit and bounds. Reasons and
+measured effects: ``docs/default_controller.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .params import CostParams, LearnerParams, Preset
+
+__all__ = ["GuidanceParams", "RepulsionParams", "TrackingParams", "BackstopParams", "DefaultPreset"]
+
+
+@dataclass(frozen=True)
+class GuidanceParams:
+    """Goal term: velocity command towards the slot, v_des = -r_hat * min(v_cruise,
+    sqrt(2 a_brake |r|), k_r |r|), then a_goal = k_v (v_des - v) + c0 (v - v_o), capped."""
+
+    v_cruise_m_s: float = 4.0
+    a_brake_m_s2: float = 0.5
+    k_r_per_s: float = 0.4
+    k_v_per_s: float = 1.0
+    a_goal_max_m_s2: float = 1.0    # the goal term is capped first (priority saturation)
+    k_fp_per_s2: float = 1.0        # plan only: formation keeping (place in the group), position gain
+    k_fd_per_s: float = 2.0         # plan only: formation keeping, velocity gain
+
+    def __post_init__(self) -> None:
+        for k, v in vars(self).items():
+            if not v > 0:
+                raise ValueError(f"{k} must be > 0, got {v}")
+
+
+@dataclass(frozen=True)
+class RepulsionParams:
+    """Closest-approach barrier between pairs (plan particles or heard neighbours).
+
+    For a pair with relative position d and velocity u, tau* = clip(-d.u/|u|^2, 0, horizon)
+    and rho = |d + tau* u| is the predicted closest approach; if rho < radius the pair is
+    pushed apart along d + tau* u (plus a 'keep right' tangential share) with
+    min(gain, (R - rho) / max(tau*, tau_min)^2) each: half of the relative acceleration that
+    would open the closest approach to R by tau*."""
+
+    radius_m: float = 1.0           # upper bound; the used radius is min(radius_m, slot_fraction * min slot spacing)
+    slot_fraction: float = 0.5       # 0.5: rows of crossing formations can interleave
+    horizon_s: float = 3.0
+    gain_m_s2: float = 1.0          # cap of one pair's push
+    tau_min_s: float = 0.5          # urgency floor of the push
+    form_yield_m_s2: float = 0.05   # plan: formation keeping weight 1 / (1 + |a_rep| / this)
+    keep_right: float = 0.3         # tangential share (breaks symmetric head-on deadlocks)
+    a_rep_max_m_s2: float = 1.0
+    a_plan_max_m_s2: float = 1.4    # plan / reactive command cap, below the vehicle limit
+
+
+@dataclass(frozen=True)
+class TrackingParams:
+    """The HJB value model used as a tracking controller of the own plan particle:
+    psi(e) = w_H^T sigma_H(e), w_H(0) the Riccati value of the tracking cost
+    c1_track |e_r|^2 + c2 |e_v|^2 + c3 |a|^2 (c2, c3 the paper's)."""
+
+    c1_track: float = 24.0          # gives k_p = 4 s^-2, k_d = 2.9 s^-1: stable at dt = 0.5 s with margin
+    e_pos_max_m: float = 0.5        # tracking error leash (the value model sees at most this)
+    e_vel_max_m_s: float = 1.0
+    learn_hjb: bool = True          # Algorithm 3/4's online NGD update of w_H on the tracking error
+    learn_fpk: bool = True          # Algorithm 4's FPK model weights the phi_G quadrature
+    phi_g_radius_m: float = 5.0     # plan particles within this range enter phi_G(s_i, m)
+
+
+@dataclass(frozen=True)
+class BackstopParams:
+    """Communication-free proximity backstop (onboard sensor of short range)."""
+
+    enabled: bool = True
+    sensor_range_m: float = 10.0
+    horizon_s: float = 2.0
+    trigger_m: float = 0.2          # act only if the predicted closest approach is below this (< dense plan clearance)
+    tau_min_s: float = 0.5
+    a_max_m_s2: float = 2.0
+
+
+@dataclass(frozen=True)
+class DefaultPreset(Preset):
+    """The product preset: the paper's model and cost plus the pieces above."""
+
+    name: str = "default"
+    learner: LearnerParams = field(default_factory=lambda: LearnerParams(w_H_init="lqr", K=1, acc_max_m_s2=2.0,
+                                                                           state_scale=(1.0, 1.0, 1.0, 1.0),
+                                                                           fpk_scale=(10.0, 10.0, 2.0, 2.0)))
+    dt_s: float = 0.5
+    guidance: GuidanceParams = field(default_factory=GuidanceParams)
+    repulsion: RepulsionParams = field(default_factory=RepulsionParams)
+    tracking: TrackingParams = field(default_factory=TrackingParams)
+    backstop: BackstopParams = field(default_factory=BackstopParams)
+    use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)
+    use_slots: bool = True          # destination as a site with one slot per UAV
+    use_repulsion: bool = True
+
+    @property
+    def tracking_cost(self) -> CostParams:
+        from dataclasses import replace
+        return replace(self.cost, c1=self.tracking.c1_track)

@@ -1,0 +1,241 @@
+"""The ``default`` preset: the product controller for both modes (issue 7).
+
+MFG (``DefaultMFGController``), per UAV, with no communication after t = 0:
+  1. t = 0 exchange: the N states and sites -> slots and the interacting mean-field plan
+     (:class:`~mfg_autopilot.planner.MeanFieldPlan`; identical on every UAV).
+  2. each step: own plan particle s_plan (N particles advanced once per control period),
+     tracking error e = s - s_plan (leashed), the HJB value model psi = w_H^T sigma_H(e)
+     (w_H(0) = the Riccati value of the tracking cost, then Algorithm 3/4's online NGD
+     update against phi_G(s, m_hat) weighted by the FPK model),
+     a = a_plan + a* with a* = -(1/(2 c3)) B^T grad psi (eq. 8, erratum 1 sign), capped;
+  3. the proximity backstop (:mod:`~mfg_autopilot.backstop`) with priority.
+HJB_d (``DefaultHJBController``): slots from the first step's heard states, the same goal
+term and closest-approach repulsion against the neighbours actually heard each step
+(priority saturation), and the same backstop.
+
+A bank row's output depends only on its own observation, what it heard/sensed, and the
+t = 0 exchange; the plan is computed once per bank from the exchanged states only.
+Parameters: :mod:`~mfg_autopilot.default_params`. Design and measurements:
+``docs/default_controller.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import controller
+from .backstop import apply_backstop, backstop_acc
+from .controller import Neighbours, Observation
+from .costs import cs_kernel
+from .default_params import DefaultPreset
+from .features import make_sigma_F, make_sigma_H
+from .learners import StepInfo, hjb_update
+from .meanfield import fit_initial_fpk_weights
+from .model import lqr_value_weights, nominal_drift, optimal_action
+from .params import Preset
+from .planner import (MeanFieldPlan, cap_norm, combine_priority, goal_acc, repulsion_from_neighbours)
+
+__all__ = ["PRESET", "DefaultMFGController", "DefaultHJBController"]
+
+PRESET = DefaultPreset()
+
+
+def _sensed(obs: Observation) -> Neighbours:
+    return obs.sensed if obs.sensed is not None else Neighbours.empty()
+
+
+class _DefaultBase:
+    def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
+        if not isinstance(preset, DefaultPreset):
+            raise ValueError(f"the default controllers need a DefaultPreset, got {type(preset).__name__}")
+        self.preset = preset
+        self.destination_site_m = np.asarray(destination_site_m, dtype=float).reshape(-1, 2)
+        self._dest = self.destination_site_m.copy()
+        bp = preset.backstop
+        self.sensor_range_m = bp.sensor_range_m if bp.enabled else None
+        self.backstop_active = np.zeros(self.n, dtype=bool)
+        self.backstop_steps = np.zeros(self.n, dtype=np.int64)
+
+    @property
+    def n(self) -> int:
+        return self.destination_site_m.shape[0]
+
+    @property
+    def destinations_m(self) -> np.ndarray:
+        """(n, 2) each row's slot (its site before the slots are known)."""
+        return self._dest
+
+    def _backstop(self, own: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
+        bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
+        if not bp.enabled:
+            return cap_norm(a_nom, a_max)
+        sn = _sensed(obs)
+        a, act = apply_backstop(cap_norm(a_nom, a_max), backstop_acc(own, sn.states, sn.owner, bp), a_max)
+        self.backstop_active = act
+        self.backstop_steps += act
+        return a
+
+
+class DefaultMFGController(_DefaultBase):
+    """MFG with the self-consistent mean-field plan, tracked by the HJB value model."""
+
+    mode = "mfg"
+    uses_t0_exchange = True
+
+    def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
+        super().__init__(preset, destination_site_m)
+        p = self.preset
+        self.track_preset = Preset(name="default-tracking", cost=p.tracking_cost, learner=p.learner, dt_s=p.dt_s)
+        self.sigma_H = make_sigma_H(p.learner.state_scale)
+        self.w_H = np.tile(lqr_value_weights(self.sigma_H, p.tracking_cost), (self.n, 1))
+        self.sigma_F = make_sigma_F(p.learner.fpk_scale)
+        self.w_F = np.zeros((self.n, self.sigma_F.M))
+        self.plan: MeanFieldPlan | None = None
+        self.own_index = np.zeros(self.n, dtype=np.int64)
+
+    def exchange_t0(self, states, ids, own_index, sites_m) -> None:
+        """The one exchange: every row gets the same plan from the same (N, 4) states."""
+        p = self.preset
+        S0 = np.asarray(states, dtype=float)
+        self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
+        self.plan = MeanFieldPlan(S0, sites_m, p.dt_s, p.cost, p.guidance, p.repulsion, use_slots=p.use_slots,
+                                  use_repulsion=p.use_repulsion)
+        self._dest = self.plan.slots_m[self.own_index].copy()
+        w0 = fit_initial_fpk_weights(self.sigma_F, S0 - S0.mean(axis=0), np.asarray(p.learner.fpk_kde_bandwidth))
+        self.w_F = np.tile(w0, (self.n, 1))
+
+    # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
+    def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
+        tp = self.preset.tracking
+        x = self.plan.states
+        tree = cKDTree(x[:, 0:2])
+        lists = tree.query_ball_point(own[:, 0:2], tp.phi_g_radius_m)
+        rows, cols = [], []
+        for r, lst in enumerate(lists):
+            js = sorted(j for j in lst if j != self.own_index[r])
+            rows.extend([r] * len(js)); cols.extend(js)
+        if not cols:
+            return np.zeros(self.n), 0
+        rows = np.asarray(rows, dtype=np.int64); cols = np.asarray(cols, dtype=np.int64)
+        k = cs_kernel(own[rows], x[cols], self.preset.cost)
+        if tp.learn_fpk:
+            sig = self.sigma_F.value(x[cols] - centroid[None, :])
+            w = np.maximum(np.einsum("pm,pm->p", sig, self.w_F[rows]), 0.0)
+        else:
+            w = np.ones(cols.size)
+        tot = np.bincount(rows, w, self.n)
+        cnt = np.bincount(rows, minlength=self.n)
+        w = np.where(tot[rows] > 0, w / np.maximum(tot[rows], 1e-300), 1.0 / np.maximum(cnt[rows], 1))
+        return np.bincount(rows, w * k, self.n), int(cols.size)
+
+    def _fpk_update(self, own: np.ndarray, e: np.ndarray, a: np.ndarray, centroid: np.ndarray, centroid_rate: np.ndarray,
+                    hess_v_psi_trace: np.ndarray) -> None:
+        """Algorithm 4 step 3 at the own state, FPK model in the plan's co-moving frame:
+        F = J_F (b - d s_bar/dt) + sigma_F div b - 1/2 tr(G G^T hess m_hat), linear in w_F."""
+        cost, lp = self.preset.cost, self.preset.learner
+        b = nominal_drift(own, a, cost)
+        div_b = -2.0 * cost.c0_per_s - hess_v_psi_trace / (2.0 * cost.c3)
+        sigF, JF, HvF = self.sigma_F.value_grad_hessvel(own - centroid[None, :])
+        T_F = np.einsum("nmab,ab->nm", HvF, cost.V_o @ cost.V_o.T)
+        g_F = np.einsum("nmd,nd->nm", JF, b - centroid_rate[None, :]) + sigF * div_b[:, None] - 0.5 * T_F
+        F = np.einsum("nm,nm->n", self.w_F, g_F)
+        g = F[:, None] * g_F
+        nrm = np.linalg.norm(g, axis=1, keepdims=True)
+        self.w_F = self.w_F - lp.mu * np.where(nrm > 0, g / np.maximum(nrm, 1e-300), 0.0)
+
+    def step(self, obs: Observation) -> StepInfo:
+        if self.plan is None:
+            raise RuntimeError("DefaultMFGController.step before exchange_t0(): the t = 0 exchange has not happened")
+        p, tp = self.preset, self.preset.tracking
+        while self.plan.k < obs.step:                          # a late start catches the plan up
+            self.plan.advance()
+        own = np.asarray(obs.own_states, dtype=float)
+        a_plan_all = self.plan.action()
+        s_plan = self.plan.states[self.own_index]
+        a_plan = a_plan_all[self.own_index]
+        e = own - s_plan
+        e = np.concatenate([cap_norm(e[:, 0:2], tp.e_pos_max_m), cap_norm(e[:, 2:4], tp.e_vel_max_m_s)], axis=1)
+        n = self.n
+        grad_evals = np.zeros(n, dtype=np.int64)
+        mf_evals = np.full(n, self.plan.N, dtype=np.int64)      # plan particles advanced per UAV
+        reg = np.zeros(n, dtype=bool)
+        H_hat = np.zeros(n)
+        x = self.plan.states
+        centroid = x.mean(axis=0)
+        if tp.learn_hjb:
+            for _ in range(p.learner.K):
+                phi_g, npairs = self._phi_G(own, centroid)
+                mf_evals += npairs // max(n, 1)
+                self.w_H, H_hat, active, feats = hjb_update(self.sigma_H, self.w_H, e, phi_g, self.track_preset)
+                grad_evals += 1 + active
+                reg |= active
+                if tp.learn_fpk:
+                    _, J, Hv = feats
+                    hv_tr = np.einsum("nm,nm->n", Hv[:, :, 0, 0] + Hv[:, :, 1, 1], self.w_H)
+                    rate = nominal_drift(x, a_plan_all, p.cost).mean(axis=0)
+                    a_star = optimal_action(np.einsum("nmd,nm->nd", J, self.w_H), p.cost.c3)
+                    self._fpk_update(own, e, a_plan + a_star, centroid, rate, hv_tr)
+                    grad_evals += 1
+        _, J = self.sigma_H.value_grad(e)
+        a_fb = optimal_action(np.einsum("nmd,nm->nd", J, self.w_H), p.cost.c3)      # eq. 8: -(1/2c3) B^T grad psi
+        a = self._backstop(own, a_plan + a_fb, obs)
+        self.plan.advance()
+        return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
+
+    def weights(self) -> dict[str, np.ndarray]:
+        return {"w_H": self.w_H.copy(), "w_F": self.w_F.copy()}
+
+
+class DefaultHJBController(_DefaultBase):
+    """HJB_d with slots, closest-approach repulsion against the neighbours heard each step,
+    priority saturation and the backstop. No swarm-wide exchange."""
+
+    mode = "hjb"
+    uses_t0_exchange = False
+
+    def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
+        super().__init__(preset, destination_site_m)
+        self._radius = np.full(self.n, self.preset.repulsion.radius_m)
+        self._slots_known = False
+
+    def _init_slots(self, own: np.ndarray, heard: Neighbours) -> None:
+        """Slot = site + own offset from the centroid of {own, heard at the first step};
+        repulsion radius from the nearest heard neighbour (slot spacing)."""
+        n, rp = self.n, self.preset.repulsion
+        cnt = 1.0 + heard.counts(n)
+        cen = np.stack([own[:, d] + np.bincount(heard.owner, heard.states[:, d], n) for d in range(2)], axis=1) / cnt[:, None]
+        if self.preset.use_slots:
+            self._dest = self.destination_site_m + own[:, 0:2] - cen
+        near = np.full(n, np.inf)
+        if heard.states.shape[0]:
+            dist = np.linalg.norm(heard.states[:, 0:2] - own[heard.owner, 0:2], axis=1)
+            np.minimum.at(near, heard.owner, dist)
+        self._radius = np.minimum(rp.radius_m, rp.slot_fraction * near)
+        self._slots_known = True
+
+    def exchange_t0(self, states, ids, own_index, sites_m) -> None:
+        """Not used: HJB_d hears its neighbours at every step instead."""
+
+    def step(self, obs: Observation) -> StepInfo:
+        p = self.preset
+        own = np.asarray(obs.own_states, dtype=float)
+        heard = obs.neighbours if obs.neighbours is not None else Neighbours.empty()
+        if not self._slots_known:
+            self._init_slots(own, heard)
+        s_rel = own - np.concatenate([self._dest, np.zeros_like(self._dest)], axis=1)
+        a_goal = goal_acc(s_rel, p.guidance, p.cost)
+        a_rep = (repulsion_from_neighbours(own, heard.states, heard.owner, self._radius, p.repulsion)
+                 if p.use_repulsion else np.zeros_like(a_goal))
+        a = self._backstop(own, combine_priority(a_rep, a_goal, p.repulsion.a_plan_max_m_s2), obs)
+        z = np.zeros(self.n, dtype=np.int64)
+        return StepInfo(a, z, np.zeros(self.n, dtype=bool), np.zeros(self.n), z)
+
+    def weights(self) -> dict[str, np.ndarray]:
+        return {"w_H": np.zeros((self.n, 54))}
+
+
+controller.register("default", "mfg", DefaultMFGController)
+controller.register("default", "hjb", DefaultHJBController)
