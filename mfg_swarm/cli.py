@@ -24,7 +24,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P in mW; d = [P/(theta sigma^2)]^(1/alpha)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the wind streams (default: 0)")
     p.add_argument("--steps", type=int, default=200, help="control steps (default: 200, i.e. 200 s at dt = 1 s)")
-    p.add_argument("--preset", default="paper", help="controller preset (default: paper)")
+    p.add_argument("--preset", default="default", help="controller preset: default (the product controller) or paper (default: default)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
 
@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(sim)
     sim.add_argument("--physics-dt-s", type=float, default=0.1, help="plant sub-step (default: 0.1 s)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+    sim.add_argument("--fail-vehicle", type=int, default=None, metavar="K", help="fault: vehicle K stops following its controller and holds where it is")
+    sim.add_argument("--fail-at", type=float, default=0.0, metavar="T", help="fault: time in s at which --fail-vehicle fails (default: 0)")
+    sim.add_argument("--gust", action="store_true", help="fault: a wind gust beyond V_o (mfg_swarm.sim.GustParams: 1 m/s^2 +-50 %%, t = 20-25 s)")
 
     run = sub.add_parser("run", help="fly the swarm as processes: N mock vehicles + N controllers over MAVLink and Zenoh")
     _add_common(run)
@@ -81,10 +84,11 @@ def _range_from(args) -> float | None:
 def _cmd_sim(args) -> int:
     from .results import write_json_atomic, write_npz_atomic
     from .scenarios import make_scenario
-    from .sim import SimConfig, simulate
+    from .sim import GustParams, SimConfig, simulate
 
     cfg = SimConfig(scenario=make_scenario(args.scenario, args.n), mode=args.mode, preset=preset_by_name(args.preset),
-                    seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s)
+                    seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
+                    fail_vehicle=args.fail_vehicle, fail_at_s=args.fail_at, gust=GustParams() if args.gust else None)
     traj, metrics = simulate(cfg, progress=False if args.no_progress else None)
     args.out.mkdir(parents=True, exist_ok=True)
     write_npz_atomic(args.out / "trajectories.npz", traj.arrays())

@@ -9,6 +9,20 @@ One loop per control step t_k = k dt:
 3. the learners (one numpy bank for all UAVs) return accelerations, rounded to
    float32 as SET_POSITION_TARGET_LOCAL_NED carries them;
 4. the plant (eq. 9, each vehicle's own noise stream from (seed, id)) advances dt.
+
+Fault events (``SimConfig``):
+- ``fail_vehicle`` K, ``fail_at_s`` T: from the first control instant t_k >= T, vehicle K
+  stops following its controller and holds where it is (PX4 Hold:
+  ``mock_vehicle.plant.hold_acc_m_s2`` towards its position at t_k). It still broadcasts
+  (HJB_d hears it) and is still seen by proximity sensors.
+- ``gust`` (:class:`GustParams`): an extra acceleration on every vehicle during a time
+  window, beyond the modelled wind noise V_o (the controllers' model does not contain it).
+  Vehicle i gets acc_m_s2 * (1 + spread * u_i) along the base direction rotated by
+  jitter_deg * w_i, u_i, w_i uniform in [-1, 1], the base direction uniform; all drawn
+  from numpy's PCG64 seeded with (seed, 0x6057) so a run is reproducible. It is applied
+  after each plant step, exactly as a constant acceleration over the part of the step
+  inside the window (dr = a h^2/2 ... with h that part; dv = a h), and is not counted in
+  the motion energy (it is not commanded).
 """
 
 from __future__ import annotations
@@ -22,17 +36,43 @@ from scipy.spatial import cKDTree
 
 from mfg_autopilot.controller import MODES, Neighbours, Observation, make_controller
 from mfg_autopilot.params import Preset
-from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams
+from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 
+from .metrics import arrivals
 from .results import Trajectories, compute_metrics
 from .scenarios import Scenario
 
-__all__ = ["SimConfig", "simulate", "plant_params_for", "as_f32"]
+__all__ = ["SimConfig", "GustParams", "simulate", "plant_params_for", "as_f32", "gust_acc_m_s2"]
 
 
 def as_f32(x: np.ndarray) -> np.ndarray:
     """Round to float32 and back: what a MAVLink float field carries."""
     return np.asarray(x, dtype=np.float32).astype(np.float64)
+
+
+@dataclass(frozen=True)
+class GustParams:
+    """A wind gust beyond the modelled V_o (module docstring)."""
+
+    start_s: float = 20.0
+    duration_s: float = 5.0
+    acc_m_s2: float = 1.0          # mean gust acceleration (V_o's noise is ~0.1 m/s per sqrt(s))
+    spread: float = 0.5            # per-vehicle magnitude spread (fraction)
+    jitter_deg: float = 30.0       # per-vehicle direction spread
+
+    def __post_init__(self) -> None:
+        if not (self.duration_s > 0 and self.acc_m_s2 >= 0 and 0 <= self.spread <= 1 and self.start_s >= 0):
+            raise ValueError(f"bad gust parameters: {self}")
+
+
+def gust_acc_m_s2(gust: GustParams, seed: int, n: int) -> np.ndarray:
+    """Each vehicle's gust acceleration (n, 2), deterministic in (seed, n)."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([seed, 0x6057])))
+    base = rng.uniform(0.0, 2.0 * np.pi)
+    u = rng.uniform(-1.0, 1.0, n)
+    w = rng.uniform(-1.0, 1.0, n)
+    ang = base + np.deg2rad(gust.jitter_deg) * w
+    return (gust.acc_m_s2 * (1.0 + gust.spread * u))[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
 
 
 @dataclass(frozen=True)
@@ -45,6 +85,9 @@ class SimConfig:
     range_m: float | None = None   # HJB_d radio range d
     physics_dt_s: float = 0.1
     link_float32: bool = True
+    fail_vehicle: int | None = None   # vehicle K that stops following its controller (Hold) ...
+    fail_at_s: float = 0.0            # ... from this time on
+    gust: GustParams | None = None
 
     @property
     def gossips(self) -> bool:
@@ -60,6 +103,10 @@ class SimConfig:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.fail_vehicle is not None and not (0 <= self.fail_vehicle < self.scenario.n):
+            raise ValueError(f"fail_vehicle must be in [0, {self.scenario.n - 1}], got {self.fail_vehicle}")
+        if not self.fail_at_s >= 0:
+            raise ValueError(f"fail_at_s must be >= 0, got {self.fail_at_s}")
 
 
 def plant_params_for(preset: Preset, physics_dt_s: float = 0.1) -> PlantParams:
@@ -110,6 +157,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     w_ref = np.empty((T + 1, ctrl.weights()["w_H"].shape[1]))
     bar = _Progress(T, sys.stderr.isatty() if progress is None else progress)
 
+    hold_pos = None
+    a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
+    backstop_rows = np.zeros(n, dtype=np.int64)
     for k in range(T):
         obs = f32(plant.states)
         pos[k], vel[k] = plant.states[:, 0:2], plant.states[:, 2:4]
@@ -124,7 +174,21 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, 0:2]).query_pairs(sensor_range_m, output_type="ndarray"))
         info = ctrl.step(Observation(k, k * dt, obs, heard, sensed))
         acc_cmd = f32(info.acc_m_s2)
+        if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:
+            K = cfg.fail_vehicle
+            if hold_pos is None:
+                hold_pos = obs[K:K + 1, 0:2].copy()
+            acc_cmd[K] = hold_acc_m_s2(obs[K:K + 1], hold_pos, plant.params.acc_limit_m_s2)[0]
         acc_log[k] = plant.step(acc_cmd, dt)
+        if cfg.gust is not None:
+            t0, t1 = max(k * dt, cfg.gust.start_s), min((k + 1) * dt, cfg.gust.start_s + cfg.gust.duration_s)
+            if t1 > t0:
+                h = t1 - t0
+                st = plant.states.copy()
+                st[:, 0:2] += 0.5 * a_gust * h * h + a_gust * h * ((k + 1) * dt - t1)
+                st[:, 2:4] += a_gust * h
+                plant.states = st
+        backstop_rows += np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)
         grad[k], mfe[k], reg[k] = info.grad_evals, info.mf_evals, info.reg_active
         bar.update(k + 1)
     pos[T], vel[T] = plant.states[:, 0:2], plant.states[:, 2:4]
@@ -135,4 +199,14 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.gossips else None,
                               seed=cfg.seed, wall_s=time.perf_counter() - t_wall, scenario=sc.name,
                               preset=preset.name, path="sim")
+    metrics["backstop_activations"] = int(backstop_rows.sum())
+    if cfg.fail_vehicle is not None:
+        K = cfg.fail_vehicle
+        others = np.ones(n, dtype=bool); others[K] = False
+        arrived, _ = arrivals(pos, traj.dest_m, dt)
+        metrics.update(fail_vehicle=K, fail_at_s=cfg.fail_at_s,
+                       failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"] if K in p),
+                       arrived_fraction_others=float(arrived[others].mean()) if n > 1 else None)
+    if cfg.gust is not None:
+        metrics["gust"] = {k: getattr(cfg.gust, k) for k in ("start_s", "duration_s", "acc_m_s2", "spread", "jitter_deg")}
     return traj, metrics
