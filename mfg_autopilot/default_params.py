@@ -64,6 +64,7 @@ class TrackingParams:
     c1_track: float = 24.0          # gives k_p = 4 s^-2, k_d = 2.9 s^-1: stable at dt = 0.5 s with margin
     e_pos_max_m: float = 0.5        # tracking error leash (the value model sees at most this)
     e_vel_max_m_s: float = 1.0
+    feedback: bool = True           # False: fly the plan's feedforward only (ablation)
     learn_hjb: bool = True          # Algorithm 3/4's online NGD update of w_H on the tracking error
     learn_fpk: bool = True          # Algorithm 4's FPK model weights the phi_G quadrature
     phi_g_radius_m: float = 5.0     # plan particles within this range enter phi_G(s_i, m)

@@ -181,6 +181,8 @@ class DefaultMFGController(_DefaultBase):
                     grad_evals += 1
         _, J = self.sigma_H.value_grad(e)
         a_fb = optimal_action(np.einsum("nmd,nm->nd", J, self.w_H), p.cost.c3)      # eq. 8: -(1/2c3) B^T grad psi
+        if not tp.feedback:
+            a_fb = np.zeros_like(a_fb)
         a = self._backstop(own, a_plan + a_fb, obs)
         self.plan.advance()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
