@@ -115,9 +115,12 @@ def _timing(traj, learned, solved, mode: str, range_m: float | None) -> dict:
 
 def bench_pde(n: int = 25, steps: int = 60, seed: int = 0, range_m: float = 100.0,
               levels: tuple[tuple[float, float], ...] = ((4.0, 1.0), (2.0, 0.5), (1.0, 0.25)),
-              mfg_levels: int = 2, inits: tuple[str, ...] = ("zero", "lqr")) -> dict:
+              mfg_levels: int = 2, inits: tuple[str, ...] = ("zero", "lqr"), pde_params: PDEParams | None = None,
+              flights: bool = True) -> dict:
     """Run (a) and (b); returns a JSON-able dict. `levels` are (dx_m, dv_m_s) grid levels; the MFG
-    is timed on the first `mfg_levels` of them (its cost grows ~8x per halving)."""
+    is timed on the first `mfg_levels` of them (its cost grows ~8x per halving). pde_params: the
+    solved controllers' grids for (a) (default PDEParams()); flights: also fly the solved modes."""
+    pde_params = pde_params or PDEParams()
     sc = make_scenario("paper", n)
     out: dict = {"n": n, "steps": steps, "seed": seed, "range_m": range_m, "distances": {}, "timing": []}
     trajs = {}
@@ -126,12 +129,12 @@ def bench_pde(n: int = 25, steps: int = 60, seed: int = 0, range_m: float = 100.
         for mode, pde_mode, rng in (("hjb", "hjb-pde", range_m), ("mfg", "mfg-pde", None)):
             traj, metrics = simulate(SimConfig(sc, mode, preset, seed=seed, steps=steps, range_m=rng), progress=False)
             trajs[(init, mode)] = (traj, preset)
-            solved = make_controller(pde_mode, preset, sc.destination_m)
+            solved = (HJBPDEController if pde_mode == "hjb-pde" else MFGPDEController)(preset, sc.destination_m, pde_params)
             d = _distances(traj, solved, pde_mode, rng)
             d["learned_arrived_fraction"] = metrics["arrived_fraction"]
             out["distances"][f"{mode}/{init}"] = d
     # the solved controllers' own flights, for reference
-    for pde_mode, rng in (("hjb-pde", range_m), ("mfg-pde", None)):
+    for pde_mode, rng in ((("hjb-pde", range_m), ("mfg-pde", None)) if flights else ()):
         _, metrics = simulate(SimConfig(sc, pde_mode, PAPER, seed=seed, steps=steps, range_m=rng), progress=False)
         out[f"{pde_mode}_flight"] = {k: metrics[k] for k in ("arrived_fraction", "collision_pairs", "motion_energy_per_uav")}
     # grid convergence of the solved stationary value and action of the paper's cost at probe states

@@ -135,7 +135,7 @@ def test_hjb_pde_neighbour_correction_aligns_velocity():
 
 def _sim(tmp_path, *args):
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", "--out", str(out), "--no-progress", *args],
+    proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", "--out", str(out), "--no-progress", "--preset", "paper", *args],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     return json.loads((out / "metrics.json").read_text()), load_trajectories(out / "trajectories.npz")
@@ -151,3 +151,18 @@ def test_pde_modes_fly_in_sim(tmp_path, args, comm):
     assert np.mean(a[:10] > 2.0 - 1e-3) > 0.9                     # far from home the action is saturated
     d = np.linalg.norm(traj.pos_m - traj.dest_m[None], axis=2)
     assert d[-1].mean() < 0.2 * d[0].mean()                       # and it brings the swarm home
+
+
+def test_bench_pde_smoke():
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "bench"))
+    from pde_bench import bench_pde
+
+    from mfg_autopilot.pde_control import PDEParams
+    r = bench_pde(n=4, steps=3, levels=((4.0, 1.0),), mfg_levels=1, inits=("lqr",),
+                  pde_params=PDEParams(dx_m=4.0, dv_m_s=1.0, horizon_s=10.0), flights=False)
+    assert set(r["distances"]) == {"hjb/lqr", "mfg/lqr"}
+    for d in r["distances"].values():
+        assert np.isfinite(d["value_rel_rms"]) and d["control_mean_m_s2"] >= 0
+    modes = [t["mode"] for t in r["timing"]]
+    assert modes == ["hjb-pde", "mfg-pde"]
+    assert all(t["learned_s_per_decision"] > 0 and t["ratio_step"] > 0 for t in r["timing"])
