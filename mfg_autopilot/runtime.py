@@ -277,6 +277,9 @@ class Autopilot:
             self.link.send_acc_setpoint(sp)
             latency = time.monotonic() - p.received_monotonic_s
             self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
+            ended = self._check_mode()
+            if ended:
+                return ended
             if time.monotonic() - tick > self.dt_s:
                 log.warning("control step %d took %.3f s > dt = %.3f s", k, time.monotonic() - tick, self.dt_s)
             if hold_on_arrival and self._arrived(state):
@@ -288,15 +291,37 @@ class Autopilot:
         return "mission_time"
 
     def _resume_offboard(self) -> None:
+        """Telemetry is back: stream setpoints again. Whether the vehicle's failsafe left
+        OFFBOARD meanwhile is judged by ``_check_mode`` on the heartbeats that follow."""
         self.link.start_setpoint_stream(self.cfg.setpoint_rate_hz)
+        self._stream_since = time.monotonic()
+        self._resume_pending = True
+
+    def _check_mode(self) -> str | None:
+        """Real time, on fresh heartbeats. After a telemetry outage, if the vehicle's failsafe
+        left OFFBOARD, re-enter it (at most every 3 s). Otherwise a mode change away from
+        OFFBOARD came from someone else (a pilot, a GCS): respect it and end the mission."""
         hb = self.link.latest_heartbeat()
-        if hb is None or not hb.is_offboard:
-            time.sleep(1.2)
-            try:
-                self.link.start_offboard(self.cfg.command_timeout_s)
-                self.clog.event("offboard", resumed=True)
-            except BridgeError as exc:
-                self.clog.event("offboard_resume_failed", error=str(exc))
+        now = time.monotonic()
+        if hb is None or now - hb.received_monotonic_s > 1.5:
+            return None
+        if hb.is_offboard:
+            if getattr(self, "_resume_pending", False) and now - getattr(self, "_stream_since", now) > 2.5:
+                self._resume_pending = False    # the vehicle never left OFFBOARD, or is back in it
+            return None
+        if not getattr(self, "_resume_pending", False):
+            self.clog.event("left_offboard", mode=hb.px4_mode.name, note="mode changed by someone else; not fighting it")
+            return "vehicle_left_offboard"
+        if now - getattr(self, "_last_reenter", -1e9) < 3.0 or now - self._stream_since < 1.2:
+            return None                         # PX4 wants > 1 s of setpoints before OFFBOARD
+        self._last_reenter = now
+        try:
+            self.link.start_offboard(self.cfg.command_timeout_s)
+            self._resume_pending = False
+            self.clog.event("offboard", resumed=True, was=hb.px4_mode.name)
+        except BridgeError as exc:
+            self.clog.event("offboard_resume_failed", error=str(exc))
+        return None
 
 
 def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> int:
