@@ -1,0 +1,121 @@
+"""The default preset (issue 7): bank-of-1 == bank-of-N, the backstop, the plan, and the
+must-show flights on a representative subset (the full sweep: bench/default_controller_sweep.py)."""
+
+import numpy as np
+import pytest
+
+from mfg_autopilot.backstop import apply_backstop, backstop_acc
+from mfg_autopilot.controller import Neighbours, Observation, make_controller
+from mfg_autopilot.default_params import BackstopParams
+from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.planner import MeanFieldPlan, slots_from_sites
+from mfg_swarm.scenarios import make_scenario
+from mfg_swarm.sim import GustParams, SimConfig, as_f32, plant_params_for, simulate
+from mock_vehicle.plant import SwarmPlant
+from scipy.spatial import cKDTree
+
+DEFAULT = preset_by_name("default")
+
+
+def _fly(scenario, n, mode, seed=0, **kw):
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode=mode, preset=DEFAULT, seed=seed, steps=200,
+                    range_m=100.0 if mode == "hjb" else None, **kw)
+    return simulate(cfg, progress=False)[1]
+
+
+def _split(nb: Neighbours, row: int) -> Neighbours:
+    m = nb.owner == row
+    return Neighbours(nb.states[m], np.zeros(int(m.sum()), dtype=np.int64), None if nb.ids is None else nb.ids[m])
+
+
+def test_bank_of_one_gives_bit_identical_actions_to_a_bank_of_n():
+    # given the crossing scenario (the groups meet at ~16 s, so the plan's repulsion acts) and
+    # one bank for all N next to N banks of one, fed the same observations and sensor data
+    sc = make_scenario("crossing", 10)
+    n = sc.n
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=3)
+    S0 = as_f32(plant.states)
+    ids = np.arange(n)
+    bank = make_controller("mfg", DEFAULT, sc.destination_m)
+    bank.exchange_t0(S0, ids, ids, sc.destination_m)
+    singles = []
+    for i in range(n):
+        c = make_controller("mfg", DEFAULT, sc.destination_m[i:i + 1])
+        c.exchange_t0(S0, ids, np.array([i]), sc.destination_m)
+        singles.append(c)
+    np.testing.assert_array_equal(bank.destinations_m, np.concatenate([c.destinations_m for c in singles]))
+    rep_seen = False
+    for k in range(60):
+        obs = as_f32(plant.states)
+        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(bank.sensor_range_m, output_type="ndarray"))
+        a_bank = bank.step(Observation(k, k * DEFAULT.dt_s, obs, None, sensed)).acc_m_s2
+        rep_seen |= bool(bank.plan.rep_active.any())
+        a_single = np.concatenate([c.step(Observation(k, k * DEFAULT.dt_s, obs[i:i + 1], None, _split(sensed, i))).acc_m_s2
+                                   for i, c in enumerate(singles)])
+        # then every row's action is bit-identical
+        np.testing.assert_array_equal(a_bank, a_single)
+        plant.step(as_f32(a_bank), DEFAULT.dt_s)
+    np.testing.assert_array_equal(bank.w_H, np.concatenate([c.w_H for c in singles]))
+    assert rep_seen, "the test should cover the plan's interaction"
+
+
+def test_slots_are_site_plus_offset_from_the_group_centroid():
+    pos = np.array([[0.0, 0.0], [2.0, 0.0], [10.0, 10.0], [12.0, 14.0]])
+    sites = np.array([[5.0, 5.0], [5.0, 5.0], [-1.0, 0.0], [-1.0, 0.0]])
+    np.testing.assert_allclose(slots_from_sites(pos, sites), [[4.0, 5.0], [6.0, 5.0], [-2.0, -2.0], [0.0, 2.0]])
+
+
+def test_plan_is_deterministic_and_arrives_without_conflicts():
+    sc = make_scenario("crossing", 20)
+    S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=0).states)
+    p, q = (MeanFieldPlan(S0, sc.destination_m, DEFAULT.dt_s, DEFAULT.cost, DEFAULT.guidance, DEFAULT.repulsion) for _ in range(2))
+    dmin = np.inf
+    for _ in range(160):
+        np.testing.assert_array_equal(p.action(), q.action())
+        p.advance(); q.advance()
+        dmin = min(dmin, cKDTree(p.states[:, :2]).query(p.states[:, :2], k=2)[0][:, 1].min())
+    assert dmin > 0.3, dmin                     # the plan keeps its pairs apart (radius 0.71 m here)
+    assert np.max(np.linalg.norm(p.states[:, :2] - p.slots_m, axis=1)) < 0.05
+
+
+def test_backstop_is_inactive_for_a_dense_hovering_neighbour_and_pushes_away_on_a_head_on_approach():
+    bp = BackstopParams()
+    own = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    # given row 0 with a hovering neighbour 0.5 m away (the dense slot spacing), row 1 with a
+    # vehicle 3 m ahead closing head-on at 2 m/s
+    sensed = np.array([[0.5, 0.0, 0.0, 0.0], [3.0, 0.0, -1.0, 0.0]])
+    da = backstop_acc(own, sensed, np.array([0, 1]), bp)
+    assert np.all(da[0] == 0.0)
+    assert np.linalg.norm(da[1]) > 0 and da[1, 0] <= 0.0 and da[1, 1] != 0.0      # brakes and sidesteps
+    a_nom = np.array([[0.3, 0.0], [1.9, 0.0]])
+    a, act = apply_backstop(a_nom, da, bp.a_max_m_s2)
+    np.testing.assert_array_equal(a[0], a_nom[0])                                  # unchanged where inactive
+    assert list(act) == [False, True] and np.linalg.norm(a[1]) <= bp.a_max_m_s2 + 1e-12
+
+
+@pytest.mark.parametrize("scenario,n,seed", [("paper", 25, 0), ("paper", 9, 1), ("crossing", 50, 0), ("dense", 81, 0)])
+def test_default_mfg_flies_collision_free_into_every_slot_talking_once(scenario, n, seed):
+    m = _fly(scenario, n, "mfg", seed)
+    h = _fly(scenario, n, "hjb", seed)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    assert m["arrived_fraction"] == 1.0, m["final_distance_mean_m"]
+    assert m["comm_states_per_uav"] == n - 1
+    assert m["motion_energy_per_uav"] <= 1.1 * h["motion_energy_per_uav"], (m["motion_energy_per_uav"], h["motion_energy_per_uav"])
+    if scenario != "dense":
+        assert h["collision_pairs"] == 0, h["collided_pairs_list"]       # default HJB_100: paper and crossing
+        assert h["comm_states_per_uav"] > 100 * (n - 1)
+
+
+def test_failed_vehicle_is_avoided_and_the_others_arrive():
+    # vehicle 22 is the middle of group A's front row: the UAVs behind it in its row head straight at it
+    m = _fly("crossing", 50, "mfg", 0, fail_vehicle=22, fail_at_s=10.0)
+    assert m["failed_vehicle_collision_pairs"] == 0
+    assert m["arrived_fraction_others"] == 1.0
+
+
+def test_gust_beyond_v_o_is_applied_and_reported():
+    calm = _fly("paper", 25, "mfg", 0)
+    gust = _fly("paper", 25, "mfg", 0, gust=GustParams())
+    assert gust["gust"]["acc_m_s2"] == 1.0
+    assert gust["motion_energy_per_uav"] != calm["motion_energy_per_uav"]
+    assert gust["collision_pairs"] == 0 and gust["arrived_fraction"] == 1.0
