@@ -2,11 +2,16 @@
 
 Per sensed vehicle j (relative position d = r_j - r_i, relative velocity u = v_j - v_i,
 both from the sensor; no communication), the predicted closest approach over the
-horizon is rho = |d + tau* u|, tau* = clip(-d.u / |u|^2, 0, horizon). Only if
+horizon is rho = |d + tau* u|, tau* = clip(-d.u / |u|^2, 0, horizon) (tau* = 0, i.e. the
+current distance, when |u| < u_noise: the wind's velocity jitter at hover, ~0.2 m/s, is
+not extrapolated - it would fire in the dense formation). Only if
 rho < trigger does the backstop act, with the acceleration that (to second order) would
-open the closest approach back to the trigger distance by tau*:
+open the closest approach to the target clearance (> trigger) by tau*:
 
-    delta_a = -n_hat * 2 (trigger - rho) / max(tau*, tau_min)^2,   n_hat = (d + tau* u) / rho
+    delta_a = -n_hat * share * 2 (target - rho) / max(tau*, tau_min)^2,   n_hat = (d + tau* u) / rho
+
+(share = 1/2: reciprocal, each vehicle takes half; a vehicle that does not react - a failed
+one - leaves the other with half per step, and the next step's prediction asks again).
 
 (n_hat = u rotated +90 deg for an exact head-on approach: both pass 'on the right').
 Contributions are summed and capped at a_max, and the result gets priority over the
@@ -36,6 +41,7 @@ def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, 
     u = sensed_states[:, 2:4] - own[owner, 2:4]
     uu = np.einsum("pd,pd->p", u, u)
     tau = np.clip(-np.einsum("pd,pd->p", d, u) / np.maximum(uu, 1e-12), 0.0, bp.horizon_s)
+    tau = np.where(uu >= bp.u_noise_m_s ** 2, tau, 0.0)          # wind jitter is not a trend
     c = d + tau[:, None] * u
     rho = np.linalg.norm(c, axis=1)
     act = rho < bp.trigger_m
@@ -44,7 +50,7 @@ def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, 
     un = np.sqrt(uu)
     perp = np.stack([-u[:, 1], u[:, 0]], axis=1) / np.maximum(un, 1e-12)[:, None]
     n_hat = np.where((rho > 1e-6)[:, None], c / np.maximum(rho, 1e-12)[:, None], np.where((un > 1e-9)[:, None], perp, np.array([[1.0, 0.0]])))
-    mag = np.where(act, 2.0 * (bp.trigger_m - rho) / np.maximum(tau, bp.tau_min_s) ** 2, 0.0)
+    mag = np.where(act, bp.share * 2.0 * (bp.target_m - rho) / np.maximum(tau, bp.tau_min_s) ** 2, 0.0)
     f = -mag[:, None] * n_hat
     for dim in range(2):
         out[:, dim] = np.bincount(owner, f[:, dim], n)

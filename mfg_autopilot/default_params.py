@@ -77,7 +77,10 @@ class BackstopParams:
     enabled: bool = True
     sensor_range_m: float = 10.0
     horizon_s: float = 2.0
-    trigger_m: float = 0.2          # act only if the predicted closest approach is below this (< dense plan clearance)
+    u_noise_m_s: float = 0.5        # relative speeds below this (wind jitter at hover) are not extrapolated
+    trigger_m: float = 0.15         # act only if the predicted closest approach is below this (< dense plan clearance)
+    target_m: float = 0.15          # ... and then push for this clearance
+    share: float = 0.5              # own share of the correction (the other vehicle is assumed to take the rest)
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
 
