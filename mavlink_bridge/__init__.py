@@ -63,6 +63,8 @@ from .px4 import (
     Px4MainMode,
     Px4Mode,
 )
+from .ratelog import RejectLog
+from .signing import SignatureVerifier, SigningConfig, SigningKeyError, load_signing_key, write_signing_key
 from .tlog import TlogWriter, read_tlog
 from .transport import Endpoint, open_transport, parse_connection_string
 

@@ -42,6 +42,7 @@ from .messages import (  # noqa: E402
     SysStatus,
     UnknownMessage,
 )
+from .signing import SIG_UNCHECKED, SIG_UNSIGNED, IFLAG_SIGNED, SignatureVerifier, SigningConfig, signing_timestamp_now  # noqa: E402
 
 __all__ = ["MavCodec", "MAVLINK_MSG_ID"]
 
@@ -233,14 +234,22 @@ class MavCodec:
     a byte stream into ``Received`` messages. Not thread-safe: use one per stream
     direction, or guard it (``MavlinkPort`` does)."""
 
-    def __init__(self, source_system: int, source_component: int) -> None:
+    def __init__(self, source_system: int, source_component: int, signing: SigningConfig | None = None) -> None:
         if not (0 < source_system < 256 and 0 <= source_component < 256):
             raise ValueError(f"bad MAVLink source ids {source_system}/{source_component}")
         self.source_system = source_system
         self.source_component = source_component
+        self.signing = signing
         self._tx = _mavlink.MAVLink(None, source_system, source_component)
-        self._rx = _mavlink.MAVLink(None, 0, 0)
+        self._rx = _mavlink.MAVLink(None, 0, 0)  # no key here: signatures are checked by _verifier
         self._rx.robust_parsing = True
+        self._verifier: SignatureVerifier | None = None
+        if signing is not None:
+            self._tx.signing.secret_key = bytes(signing.key)
+            self._tx.signing.link_id = signing.link_id
+            self._tx.signing.sign_outgoing = True
+            self._tx.signing.timestamp = signing_timestamp_now()
+            self._verifier = SignatureVerifier(signing.key)
 
     def encode(self, msg: Message) -> bytes:
         """One MAVLink 2 packet carrying ``msg`` (sequence number advances)."""
@@ -248,6 +257,8 @@ class MavCodec:
             enc = _ENCODERS[type(msg)]
         except KeyError:
             raise TypeError(f"cannot encode {type(msg).__name__}") from None
+        if self.signing is not None:  # spec: timestamp = max(last + 1, now); pymavlink adds the + 1
+            self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp_now())
         packet = bytes(enc(self._tx, msg).pack(self._tx))
         self._tx.seq = (self._tx.seq + 1) % 256
         return packet
@@ -281,8 +292,17 @@ class MavCodec:
             self.reset_parser()
             return [Received(BadData(f"parser error: {exc}", len(data), now), 0, 0, b"")]
         for p in parsed:
-            out.append(self._typed(p, now))
+            r = self._typed(p, now)
+            if r.raw:
+                r = replace(r, signature=self._signature_status(r))
+            out.append(r)
         return out
+
+    def _signature_status(self, r: Received) -> str:
+        if self._verifier is not None:
+            return self._verifier.verify(r.raw, r.src_system, r.src_component)
+        signed = len(r.raw) > 2 and r.raw[0] == 0xFD and r.raw[2] & IFLAG_SIGNED
+        return SIG_UNCHECKED if signed else SIG_UNSIGNED
 
     @staticmethod
     def _typed(p, now: float) -> Received:

@@ -10,6 +10,12 @@ and arming changes are then confirmed by the vehicle's HEARTBEAT. Every wait tak
 
 Setpoints only ever go to ``target_system``/``target_component``: no method takes
 another target, and ``target_system`` 0 (broadcast) is refused at open.
+
+Signing (issue 10, docs/security.md): with ``signing_key`` every packet sent is signed
+(MAVLink 2 signing, ``link_id`` = ``signing_link_id``), and a received packet is used
+only if its signature is valid and fresh; unsigned packets are accepted only with
+``accept_unsigned=True``; badly signed or replayed ones never. Rejected input (bad
+signature, garbage, non-finite telemetry) is logged once per kind, then counted.
 """
 
 from __future__ import annotations
@@ -41,11 +47,14 @@ from .messages import (
     ParamRequestRead,
     ParamSet,
     ParamValue,
+    BadData,
     Received,
     SetPositionTargetLocalNed,
     acceleration_setpoint,
 )
 from .port import MavlinkPort
+from .ratelog import RejectLog
+from .signing import SIG_UNSIGNED, SIG_VALID, SigningConfig
 from .px4 import (
     PX4_HOLD,
     PX4_LAND,
@@ -82,6 +91,7 @@ class VehicleLink:
         tlog: TlogWriter | None = None,
         heartbeat_rate_hz: float = 1.0,
         command_retry_interval_s: float = 0.5,
+        accept_unsigned: bool = False,
     ) -> None:
         if not (1 <= target_system <= 255):
             raise ValueError(f"target_system must be 1..255 (never broadcast 0), got {target_system}")
@@ -101,6 +111,9 @@ class VehicleLink:
         self._t0 = time.monotonic()
         self.n_ignored_other_system = 0
         self.n_bad = 0
+        self.accept_unsigned = bool(accept_unsigned)
+        self.rejects = RejectLog(log)
+        """Rejected input by kind (``rejects.counts``); each kind is logged once, then counted."""
         self._held: SetPositionTargetLocalNed | None = None
         self._held_time_boot_ms: int | None = None
         self._stream_stop: threading.Event | None = None
@@ -122,16 +135,30 @@ class VehicleLink:
         source_component: int = COMPANION_COMPONENT_ID,
         tlog_path: str | None = None,
         heartbeat_rate_hz: float = 1.0,
+        signing_key: bytes | None = None,
+        signing_link_id: int = 0,
+        accept_unsigned: bool = False,
     ) -> "VehicleLink":
-        """Open ``url`` (``udpin:127.0.0.1:14540``, ``udpout:``, ``tcp:``, ``/dev/ttyUSB0:921600``)."""
+        """Open ``url`` (``udpin:127.0.0.1:14540``, ``udpout:``, ``tcp:``, ``/dev/ttyUSB0:921600``).
+
+        ``signing_key`` (32 bytes, e.g. from ``load_signing_key(path)``): sign everything
+        sent with link id ``signing_link_id`` and drop every received packet whose
+        signature is not valid and fresh -- unsigned ones too unless ``accept_unsigned``.
+        Without a key nothing is signed or checked (the behaviour before issue 10)."""
+        signing = None if signing_key is None else SigningConfig(bytes(signing_key), signing_link_id)
         tlog = TlogWriter(tlog_path) if tlog_path else None
         try:
-            port = MavlinkPort.open(url, source_system, source_component, tlog)
+            port = MavlinkPort.open(url, source_system, source_component, tlog, signing=signing)
         except BaseException:
             if tlog is not None:
                 tlog.close()
             raise
-        return cls(port, target_system, target_component, tlog, heartbeat_rate_hz)
+        return cls(port, target_system, target_component, tlog, heartbeat_rate_hz, accept_unsigned=accept_unsigned)
+
+    @property
+    def signing(self) -> bool:
+        """True if this link signs what it sends and checks what it receives."""
+        return self.port.signing is not None
 
     def close(self) -> None:
         """Stop the threads, close the transport and the tlog. Idempotent."""
@@ -169,8 +196,23 @@ class VehicleLink:
 
     def _on_message(self, r: Received) -> None:
         msg = r.msg
+        if isinstance(msg, BadData):
+            self.n_bad += 1
+            self.rejects.reject("bad packet", f"{msg.reason} ({msg.n_bytes} bytes)")
+            return
+        if self.port.signing is not None and r.signature != SIG_VALID:
+            if not (r.signature == SIG_UNSIGNED and self.accept_unsigned):
+                self.rejects.reject(
+                    f"{r.signature} packet", f"{type(msg).MSG_NAME} from {r.src_system}/{r.src_component}"
+                )
+                return
         if r.src_system != self.target_system:
             self.n_ignored_other_system += 1
+            return
+        if isinstance(msg, LocalPositionNed) and not all(
+            map(math.isfinite, (msg.x_m, msg.y_m, msg.z_m, msg.vx_m_s, msg.vy_m_s, msg.vz_m_s))
+        ):
+            self.rejects.reject("non-finite LOCAL_POSITION_NED", f"from {r.src_system}/{r.src_component}")
             return
         if isinstance(msg, Heartbeat) and r.src_component != self.target_component and self.target_component != 0:
             return  # e.g. a camera or gimbal of the same vehicle

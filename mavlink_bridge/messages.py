@@ -388,3 +388,11 @@ class Received:
     src_system: int
     src_component: int
     raw: bytes = field(default=b"", repr=False, compare=False)
+    signature: str = "unsigned"
+    """MAVLink 2 signature status (``mavlink_bridge.signing``): "unsigned", "valid",
+    "bad signature", "replayed timestamp", or "unchecked" (signed, but no key here)."""
+
+    @property
+    def signed_ok(self) -> bool:
+        """True if the packet carried a valid, fresh signature under this endpoint's key."""
+        return self.signature == "valid"

@@ -9,6 +9,7 @@ import threading
 
 from .codec import MavCodec
 from .messages import BadData, Message, Received
+from .signing import SigningConfig
 from .tlog import TlogWriter
 from .transport import Transport, open_transport
 
@@ -25,21 +26,34 @@ class MavlinkPort:
         source_component: int,
         tlog: TlogWriter | None = None,
         name: str = "",
+        signing: SigningConfig | None = None,
     ) -> None:
         self.transport = transport
-        self.codec = MavCodec(source_system, source_component)
+        self.codec = MavCodec(source_system, source_component, signing)
         self.tlog = tlog
         self.name = name or str(getattr(transport, "endpoint", "port"))
         self._tx_lock = threading.Lock()
         self.n_sent = 0
         self.n_received = 0
         self.n_bad = 0
+        self.n_datagrams = 0
 
     @classmethod
     def open(
-        cls, url: str, source_system: int, source_component: int, tlog: TlogWriter | None = None
+        cls,
+        url: str,
+        source_system: int,
+        source_component: int,
+        tlog: TlogWriter | None = None,
+        signing: SigningConfig | None = None,
     ) -> "MavlinkPort":
-        return cls(open_transport(url), source_system, source_component, tlog, name=url)
+        """Open ``url``; with ``signing`` every packet sent is signed and every packet
+        received carries its signature status (``Received.signature``)."""
+        return cls(open_transport(url), source_system, source_component, tlog, name=url, signing=signing)
+
+    @property
+    def signing(self) -> SigningConfig | None:
+        return self.codec.signing
 
     @property
     def source_system(self) -> int:
@@ -70,6 +84,7 @@ class MavlinkPort:
         data = self.transport.recv(timeout_s)
         if data is None:
             return []
+        self.n_datagrams += 1
         out = self.codec.decode_datagram(data) if self.transport.is_datagram else self.codec.decode(data)
         for r in out:
             if isinstance(r.msg, BadData):

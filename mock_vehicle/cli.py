@@ -55,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--deny-arming", action="store_true", help="refuse arming (a failed preflight check; param SIM_ARM_DENY)")
     for kind, hz in d.rates_hz.items():
         p.add_argument(f"--{kind.replace('_', '-')}-hz", type=float, default=hz, help=f"{kind.upper()} rate, Hz (0 disables)")
+    p.add_argument("--signing-key", default=None, metavar="FILE",
+                   help="MAVLink 2 signing: 64 hex chars, mode 600; sign everything sent, ignore unsigned/badly signed input")
+    p.add_argument("--signing-link-id", type=int, default=0, help="signing link id stamped on what this vehicle sends (0..255)")
     p.add_argument("--tlog", default=None, help="write a MAVLink .tlog of everything sent and received")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
     return p
@@ -103,7 +106,12 @@ def main(argv: list[str] | None = None) -> int:
     log = logging.getLogger("mock_vehicle")
     try:
         cfg, urls = config_from_args(args)
-    except ValueError as exc:
+        signing = None
+        if args.signing_key is not None:
+            from mavlink_bridge.signing import SigningConfig, load_signing_key
+
+            signing = SigningConfig(load_signing_key(args.signing_key), args.signing_link_id)
+    except ValueError as exc:  # SigningKeyError is a ValueError
         log.error("%s", exc)
         return 2
     stop = threading.Event()
@@ -117,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     from .server import run_vehicle
 
     try:
-        run_vehicle(cfg, urls, stop, tlog_path=args.tlog)
+        run_vehicle(cfg, urls, stop, tlog_path=args.tlog, signing=signing)
     except Exception as exc:  # config errors surface here (bad url, port in use)
         log.error("mock vehicle failed: %s", exc)
         return 1

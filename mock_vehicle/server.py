@@ -10,6 +10,7 @@ import threading
 import time
 
 from mavlink_bridge import MavlinkPort, Message, TlogWriter
+from mavlink_bridge.signing import SigningConfig
 
 from .vehicle import MockVehicle, VehicleConfig
 
@@ -24,20 +25,28 @@ def run_vehicle(
     stop: threading.Event,
     tlog_path: str | None = None,
     max_wait_s: float = 0.02,
+    signing: SigningConfig | None = None,
 ) -> MockVehicle:
-    """Serve ``cfg`` on every url in ``urls`` until ``stop`` is set. Returns the vehicle."""
+    """Serve ``cfg`` on every url in ``urls`` until ``stop`` is set. Returns the vehicle.
+    With ``signing`` every packet sent is signed and only validly signed input is used."""
     tlog = TlogWriter(tlog_path) if tlog_path else None
     ports: list[MavlinkPort] = []
     try:
         for url in urls:
-            ports.append(MavlinkPort.open(url, cfg.system_id, cfg.component_id, tlog))
-            log.info("MAVLink on %s as system %d component %d", url, cfg.system_id, cfg.component_id)
+            ports.append(MavlinkPort.open(url, cfg.system_id, cfg.component_id, tlog, signing=signing))
+            log.info(
+                "MAVLink on %s as system %d component %d%s",
+                url,
+                cfg.system_id,
+                cfg.component_id,
+                "" if signing is None else f", signing on (link id {signing.link_id}): unsigned input is ignored",
+            )
 
         def send(msg: Message, port: object | None) -> None:
             for p in ports if port is None else [port]:
                 p.send(msg)  # type: ignore[union-attr]
 
-        vehicle = MockVehicle(cfg, send)
+        vehicle = MockVehicle(cfg, send, require_signed=signing is not None)
         log.info(
             "instance %d at %s m, v %s m/s, %s clock",
             cfg.instance,
@@ -64,6 +73,10 @@ def run_vehicle(
             if tlog is not None:
                 tlog.maybe_flush()
         vehicle.rejects.summary()
+        for p in ports:
+            log.info(
+                "link %s: %d datagrams, %d packets, %d bad, %d sent", p.name, p.n_datagrams, p.n_received, p.n_bad, p.n_sent
+            )
         return vehicle
     finally:
         for p in ports:

@@ -9,6 +9,13 @@ Clocks (docs/lockstep.md):
 - lockstep: simulated time starts at 0 and advances by exactly ``dt_s`` when, armed and in
   OFFBOARD, a setpoint stamped with the current simulated ``time_boot_ms`` arrives.
 
+Signing (issue 10, docs/security.md): with ``require_signed`` every message whose
+signature is not valid and fresh (``Received.signature``) is ignored before it reaches
+the mode machine, the setpoint filter or the parameters, and logged once per kind
+("unsigned COMMAND_LONG", "bad signature SET_MODE", "replayed timestamp
+SET_POSITION_TARGET_LOCAL_NED", ... for the commanding messages, "... other message"
+for the rest). Signing what the vehicle sends is the port's job (``MavlinkPort``).
+
 Dynamics: frozen at the initial state until the first OFFBOARD entry (the vehicle hovers at
 its slot); then OFFBOARD integrates the held setpoint, every other mode PX4 Hold
 (``hold_acc_m_s2`` around where it began). Altitude is fixed (z = -altitude) except in LAND.
@@ -66,11 +73,12 @@ from mavlink_bridge import (
     UnknownMessage,
 )
 from mavlink_bridge import MSG_ID_BY_NAME
+from mavlink_bridge.ratelog import RejectLog
 
 from .params import ParamTable
 from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 
-__all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint"]
+__all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint", "SETPOINT_LIMITS", "SIGNED_COMMAND_MESSAGES"]
 
 log = logging.getLogger("mock_vehicle")
 
@@ -81,6 +89,14 @@ OFFBOARD_MIN_STREAM_S = 1.0  # for > 1 s
 LAND_DESCENT_M_S = 1.0
 HOLD_LIKE = (PX4_HOLD, PX4_POSCTL)
 CAPABILITIES = 2 | 8 | 128 | 8192  # PARAM_FLOAT | COMMAND_INT | SET_POSITION_TARGET_LOCAL_NED | MAVLINK2
+
+SETPOINT_LIMITS = {"position_m": 1.0e5, "velocity_m_s": 100.0, "acceleration_m_s2": 100.0, "yaw_rad": 100.0, "yaw_rate_rad_s": 100.0}
+"""Largest magnitude of a used SET_POSITION_TARGET_LOCAL_NED field; beyond it the setpoint
+is rejected ("setpoint out of range") before it can reach the plant. (The plant also
+saturates the acceleration at MPC_ACC_HOR_MAX.)"""
+
+SIGNED_COMMAND_MESSAGES = (CommandLong, CommandInt, SetMode, SetPositionTargetLocalNed, ParamSet)
+"""Messages that command the vehicle; with signing on, each has its own rejection kind."""
 
 _ID = MSG_ID_BY_NAME
 TELEMETRY_IDS = {
@@ -135,34 +151,6 @@ class VehicleConfig:
         return 1
 
 
-class RejectLog:
-    """Rate-limited log of rejected input: the first of each kind is logged with its
-    detail, later ones are counted and summarised at most every ``period_s``."""
-
-    def __init__(self, logger: logging.Logger, period_s: float = 5.0) -> None:
-        self._log = logger
-        self._period_s = period_s
-        self.counts: dict[str, int] = {}
-        self._reported: dict[str, tuple[int, float]] = {}
-
-    def reject(self, kind: str, detail: str) -> None:
-        n = self.counts.get(kind, 0) + 1
-        self.counts[kind] = n
-        now = time.monotonic()
-        if n == 1:
-            self._log.warning("rejected %s: %s (further ones are counted)", kind, detail)
-            self._reported[kind] = (1, now)
-            return
-        last_n, last_t = self._reported[kind]
-        if now - last_t >= self._period_s:
-            self._log.warning("rejected %s: %d more (total %d), latest: %s", kind, n - last_n, n, detail)
-            self._reported[kind] = (n, now)
-
-    def summary(self) -> None:
-        for kind, n in self.counts.items():
-            self._log.info("rejected %s: %d in total", kind, n)
-
-
 def _finite(*xs: float) -> bool:
     return all(math.isfinite(x) for x in xs)
 
@@ -187,25 +175,37 @@ def check_setpoint(sp: SetPositionTargetLocalNed, system_id: int, component_id: 
     use_acc = (mask & F.ACCELERATION_IGNORE) != F.ACCELERATION_IGNORE
     if not (use_pos or use_vel or use_acc):
         return "setpoint ignores everything", f"type_mask {mask:#06x} ignores position, velocity and acceleration"
+    L = SETPOINT_LIMITS
     used = []
-    for bit, value in (
-        (F.X_IGNORE, sp.x_m), (F.Y_IGNORE, sp.y_m), (F.Z_IGNORE, sp.z_m),
-        (F.VX_IGNORE, sp.vx_m_s), (F.VY_IGNORE, sp.vy_m_s), (F.VZ_IGNORE, sp.vz_m_s),
-        (F.AX_IGNORE, sp.afx_m_s2), (F.AY_IGNORE, sp.afy_m_s2), (F.AZ_IGNORE, sp.afz_m_s2),
-        (F.YAW_IGNORE, sp.yaw_rad), (F.YAW_RATE_IGNORE, sp.yaw_rate_rad_s),
+    for bit, value, limit in (
+        (F.X_IGNORE, sp.x_m, L["position_m"]), (F.Y_IGNORE, sp.y_m, L["position_m"]), (F.Z_IGNORE, sp.z_m, L["position_m"]),
+        (F.VX_IGNORE, sp.vx_m_s, L["velocity_m_s"]), (F.VY_IGNORE, sp.vy_m_s, L["velocity_m_s"]), (F.VZ_IGNORE, sp.vz_m_s, L["velocity_m_s"]),
+        (F.AX_IGNORE, sp.afx_m_s2, L["acceleration_m_s2"]), (F.AY_IGNORE, sp.afy_m_s2, L["acceleration_m_s2"]),
+        (F.AZ_IGNORE, sp.afz_m_s2, L["acceleration_m_s2"]),
+        (F.YAW_IGNORE, sp.yaw_rad, L["yaw_rad"]), (F.YAW_RATE_IGNORE, sp.yaw_rate_rad_s, L["yaw_rate_rad_s"]),
     ):  # fmt: skip
         if not mask & bit:
-            used.append(value)
-    if not _finite(*used):
+            used.append((value, limit))
+    if not _finite(*(v for v, _ in used)):
         return "setpoint non-finite field", f"NaN/inf in a used field (type_mask {mask:#06x})"
+    if any(abs(v) > limit for v, limit in used):
+        return "setpoint out of range", f"a used field beyond its limit {SETPOINT_LIMITS} (type_mask {mask:#06x})"
     return None
 
 
 class MockVehicle:
     """The PX4-like vehicle (see module docstring). ``send(msg, port)``: port None = all."""
 
-    def __init__(self, cfg: VehicleConfig, send: Callable[[Message, object | None], None], clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        cfg: VehicleConfig,
+        send: Callable[[Message, object | None], None],
+        clock: Callable[[], float] = time.monotonic,
+        require_signed: bool = False,
+    ) -> None:
         self.cfg = cfg
+        self.require_signed = bool(require_signed)
+        self._errors_logged: set[tuple[str, str]] = set()
         self._send = send
         self._clock = clock
         self.sysid = cfg.system_id
@@ -278,6 +278,10 @@ class MockVehicle:
         """Process one received message; never raises on bad input."""
         msg = r.msg
         try:
+            if self.require_signed and not isinstance(msg, BadData) and r.signature != "valid":
+                what = msg.MSG_NAME if isinstance(msg, SIGNED_COMMAND_MESSAGES) else "other message"
+                self.rejects.reject(f"{r.signature} {what}", f"{msg.MSG_NAME} from {r.src_system}/{r.src_component}")
+                return
             if isinstance(msg, SetPositionTargetLocalNed):
                 self._on_setpoint(msg, port)
             elif isinstance(msg, CommandLong):
@@ -293,8 +297,12 @@ class MockVehicle:
                 self.rejects.reject("bad packet", f"{msg.reason} ({msg.n_bytes} bytes)")
             elif isinstance(msg, UnknownMessage):
                 self.rejects.reject("unknown message", f"id {msg.msg_id} ({msg.name}) from {r.src_system}/{r.src_component}")
-        except Exception:  # a bug must not kill the vehicle; say so loudly
-            log.exception("error handling %s from %d/%d", type(msg).__name__, r.src_system, r.src_component)
+        except Exception as exc:  # a bug must not kill the vehicle; say so loudly, once per kind
+            kind = (type(msg).__name__, type(exc).__name__)
+            self.rejects.reject(f"internal error {kind[1]} handling {kind[0]}", str(exc))
+            if kind not in self._errors_logged:
+                self._errors_logged.add(kind)
+                log.exception("error handling %s from %d/%d", type(msg).__name__, r.src_system, r.src_component)
 
     def _for_me(self, target_system: int, target_component: int) -> bool:
         return target_system in (0, self.sysid) and target_component in (0, self.compid)
@@ -336,7 +344,7 @@ class MockVehicle:
         if command == MavCmd.COMPONENT_ARM_DISARM:
             result = self._arm_disarm(p[0], p[1])
         elif command == MavCmd.DO_SET_MODE:
-            if not _finite(p[0], p[1], p[2]) or not (int(p[0]) & MavModeFlag.CUSTOM_MODE_ENABLED):
+            if not all(_finite(x) and 0 <= x <= 255 for x in p[:3]) or not (int(p[0]) & MavModeFlag.CUSTOM_MODE_ENABLED):
                 result = MavResult.DENIED
             else:
                 result = self._request_mode(Px4Mode(int(p[1]), int(p[2])))
@@ -352,7 +360,7 @@ class MockVehicle:
             result = MavResult.ACCEPTED if m is not None else MavResult.DENIED
             after = [m] if m is not None else []
         if result == MavResult.UNSUPPORTED:
-            log.info("unsupported command %d from %d/%d", command, r.src_system, r.src_component)
+            self.rejects.reject("unsupported command", f"command {command} from {r.src_system}/{r.src_component}")
         self._send(CommandAck(int(command), int(result), r.src_system, r.src_component), port)
         for m in after:
             self._send(m, port)
@@ -361,7 +369,7 @@ class MockVehicle:
         if p1 == 1.0:
             if self.params["SIM_ARM_DENY"] >= 0.5 and p2 != 21196.0:
                 self._statustext(MavSeverity.CRITICAL, "Preflight Fail: SIM_ARM_DENY set")
-                log.warning("arming denied (SIM_ARM_DENY)")
+                self.rejects.reject("arming denied", "SIM_ARM_DENY set")
                 return MavResult.DENIED
             if not self.armed:
                 self.armed = True
@@ -381,12 +389,12 @@ class MockVehicle:
             mode = PX4_OFFBOARD
             if self.mode != PX4_OFFBOARD and not self._offboard_stream_ok():
                 self._statustext(MavSeverity.CRITICAL, "Switching to Offboard is currently not available")
-                log.warning("OFFBOARD refused: no setpoint stream at >= 2 Hz for > 1 s")
+                self.rejects.reject("OFFBOARD refused", "no setpoint stream at >= 2 Hz for > 1 s")
                 return MavResult.TEMPORARILY_REJECTED
         elif mode.main_mode == Px4MainMode.AUTO and mode.sub_mode in (0, PX4_HOLD.sub_mode):
             mode = PX4_HOLD
         elif mode not in (PX4_LAND, PX4_POSCTL):
-            log.warning("mode %s not supported by the mock", mode)
+            self.rejects.reject("unsupported mode", f"mode {mode} not supported by the mock")
             return MavResult.TEMPORARILY_REJECTED
         self._set_mode(mode, reason="commanded")
         return MavResult.ACCEPTED
@@ -477,16 +485,19 @@ class MockVehicle:
         F = PositionTargetTypeMask
         m = sp.type_mask
         s = self.state
-        acc = np.zeros(2)
-        if (m & F.ACCELERATION_IGNORE) != F.ACCELERATION_IGNORE:
-            acc += np.array([sp.afx_m_s2, sp.afy_m_s2], dtype=np.float64)
-        vel_sp = np.zeros(2)
-        use_vel = (m & F.VELOCITY_IGNORE) != F.VELOCITY_IGNORE
-        if use_vel:
-            vel_sp = np.array([sp.vx_m_s, sp.vy_m_s])
-        if (m & F.POSITION_IGNORE) != F.POSITION_IGNORE:
-            acc += 1.0 * (np.array([sp.x_m, sp.y_m]) - s[0:2]) + 2.0 * (vel_sp - s[2:4])
-        elif use_vel:
+
+        def axes(bits: tuple[int, int], values: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+            """(used per axis, value where used else 0): an ignored field never enters the sum."""
+            used = np.array([not (m & b) for b in bits])
+            return used, np.where(used, np.array(values, dtype=np.float64), 0.0) if used.any() else np.zeros(2)
+
+        use_acc, acc_sp = axes((F.AX_IGNORE, F.AY_IGNORE), (sp.afx_m_s2, sp.afy_m_s2))
+        use_vel, vel_sp = axes((F.VX_IGNORE, F.VY_IGNORE), (sp.vx_m_s, sp.vy_m_s))
+        use_pos, pos_sp = axes((F.X_IGNORE, F.Y_IGNORE), (sp.x_m, sp.y_m))
+        acc = acc_sp.copy()
+        if use_pos.any():
+            acc += np.where(use_pos, 1.0 * (pos_sp - s[0:2]), 0.0) + 2.0 * (vel_sp - s[2:4])
+        elif use_vel.any():
             acc += 2.0 * (vel_sp - s[2:4])
         if sp.coordinate_frame == MavFrame.BODY_NED:
             pass  # yaw is held at 0 (north), so body and local NED coincide
@@ -503,12 +514,12 @@ class MockVehicle:
     def _step(self, dt_s: float) -> None:
         acc = self._current_acc_m_s2()
         if not np.all(np.isfinite(acc)):
-            log.error("non-finite acceleration %s: holding instead", acc)
+            self.rejects.reject("non-finite acceleration", f"{acc}: holding instead")
             acc = hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
         before = self.plant.states.copy()
         self.applied_acc_m_s2 = self.plant.step(acc, dt_s)[0]
         if not np.all(np.isfinite(self.plant.states)):
-            log.error("plant state became non-finite; restoring the previous state")
+            self.rejects.reject("non-finite plant state", "restoring the previous state")
             self.plant.states = before
         if self.mode == PX4_LAND:
             self.vz_m_s = LAND_DESCENT_M_S
