@@ -43,9 +43,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
     p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")
     p.add_argument("--tlog", default=None, help="MAVLink .tlog of this link")
+    p.add_argument("--state-dir", default=None, help="checkpoint folder: a restarted controller resumes from it "
+                                                     "without a new swarm exchange (docs/controller_log.md)")
     p.add_argument("--vehicle-timeout-s", type=float, default=30.0, help="wait for the vehicle's heartbeat and position")
     p.add_argument("--exchange-timeout-s", type=float, default=60.0, help="wait for the swarm (t = 0 exchange / membership)")
     p.add_argument("--gossip-timeout-s", type=float, default=10.0, help="lockstep HJB_d: wait for neighbours' states of a step")
+    p.add_argument("--vehicle-lost-s", type=float, default=3.0,
+                   help="heartbeat silence after which the vehicle counts as lost (stop, wait, redo the handshake)")
     p.add_argument("--step-timeout-s", type=float, default=30.0, help="lockstep: wait for the vehicle to take a step")
     p.add_argument("--log-level", default="INFO")
     ZenohSettings.add_cli_args(p)
@@ -70,7 +74,8 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         preset=args.preset, n=args.n, swarm=args.swarm, range_m=range_m, sites_m=sites, lockstep=args.lockstep,
         steps=args.steps, hold_on_arrival=hold, log_path=args.log, tlog_path=args.tlog, zenoh=ZenohSettings.from_args(args),
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
-        gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s)
+        gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
+        vehicle_lost_s=args.vehicle_lost_s)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,8 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
+import pickle
 import threading
 import time
 from dataclasses import dataclass, field
@@ -77,6 +79,8 @@ class AutopilotConfig:
     command_timeout_s: float = 10.0
     telemetry_stale_s: float = 0.5
     setpoint_rate_hz: float = 20.0
+    vehicle_lost_s: float = 3.0               # heartbeat silence after which the vehicle is lost
+    state_dir: str | None = None              # checkpoints for a restart without a new exchange
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -151,6 +155,8 @@ class Autopilot:
         self.dt_s = self.preset.dt_s
         self.dt_ms = int(round(self.dt_s * 1000))
         self.gossips = cfg.mode.startswith("hjb")
+        self.mission_start_unix_s: float | None = None
+        self.n_t0 = 0
 
     # ---------------------------------------------------------------- phases
     def join_swarm(self, s0: np.ndarray) -> int:
@@ -163,7 +169,8 @@ class Autopilot:
             own = int(np.flatnonzero(ids == cfg.instance)[0])
             self.ctrl.exchange_t0(states, ids, np.array([own]), self.sites[ids])
             self.clog.event("t0_exchange", states_received=len(ids) - 1)
-            return len(ids) - 1
+            self.n_t0 = len(ids) - 1
+            return self.n_t0
         self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s)
         self.clog.event("swarm_present", n=cfg.n)
         return 0
@@ -216,17 +223,20 @@ class Autopilot:
     def run_lockstep(self, p0: LocalPositionNed) -> str:
         cfg = self.cfg
         p = p0
-        for k in range(cfg.steps):
+        while True:
             if self.stop.is_set():
                 return "signal"
             t_ms = p.time_boot_ms
+            k = t_ms // self.dt_ms                  # the step index is the vehicle's simulated time
+            if k >= cfg.steps:
+                return "mission_time"
             state = _state_of(p)
             obs = self._observe(k, state, t_ms / 1000.0)
             info = self.ctrl.step(obs)
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             self._record(k, t_ms / 1000.0, state, acc, info, obs, None)
             p = self._lockstep_exchange_setpoint(acc, t_ms)
-        return "mission_time"
+            self._checkpoint(k)
 
     def _lockstep_exchange_setpoint(self, acc: np.ndarray, t_ms: int) -> LocalPositionNed:
         """Send the step's setpoint stamped t_ms and wait for the position stamped after it,
@@ -242,18 +252,30 @@ class Autopilot:
                                          f"{self.cfg.step_timeout_s} s of lockstep setpoints; is it still in OFFBOARD?") from None
 
     def run_realtime(self) -> str:
+        """Control steps on the mission clock: step k at mission start + k dt (wall time), so
+        a restarted controller (or one that missed a tick) stays on the same schedule."""
         cfg = self.cfg
         hold_on_arrival = True if cfg.hold_on_arrival is None else cfg.hold_on_arrival
-        next_tick = time.monotonic()
+        if self.mission_start_unix_s is None:
+            self.mission_start_unix_s = time.time()
         arrived_since = None
         stale = False
-        for k in range(cfg.steps):
-            while not self.stop.is_set() and time.monotonic() < next_tick:
-                self.stop.wait(min(0.05, next_tick - time.monotonic()))
+        last_k = -1
+        while True:
+            k_due = int(math.floor((time.time() - self.mission_start_unix_s) / self.dt_s + 1e-9))
+            k = max(k_due, last_k + 1)          # on time: the next step; late (or resumed): the one due now
+            if k >= cfg.steps:
+                return "mission_time"
+            tick_unix = self.mission_start_unix_s + k * self.dt_s
+            while not self.stop.is_set() and time.time() < tick_unix:
+                self.stop.wait(min(0.05, max(0.0, tick_unix - time.time())))
             if self.stop.is_set():
                 return "signal"
-            next_tick += self.dt_s
             tick = time.monotonic()
+            if self.link.heartbeat_age_s() > cfg.vehicle_lost_s:
+                self._await_vehicle_return()
+                stale = False
+                continue
             last = self.link.latest_local_position()
             try:
                 p = self.link.wait_local_position(None if last is None else last.time_boot_ms, timeout_s=cfg.telemetry_stale_s)
@@ -263,12 +285,14 @@ class Autopilot:
                     self.link.stop_setpoint_stream()
                     self.clog.event("telemetry_stale", age_s=self.link.telemetry_age_s(),
                                     note="setpoints stopped; the vehicle's offboard-loss failsafe takes over")
+                self.stop.wait(0.05)
                 continue
             if stale:
                 stale = False
                 self.clog.event("telemetry_back")
                 self._resume_offboard()
             state = _state_of(p)
+            last_k = k
             obs = self._observe(k, state, p.time_boot_ms / 1000.0)
             info = self.ctrl.step(obs)
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
@@ -277,6 +301,7 @@ class Autopilot:
             self.link.send_acc_setpoint(sp)
             latency = time.monotonic() - p.received_monotonic_s
             self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
+            self._checkpoint(k)
             ended = self._check_mode()
             if ended:
                 return ended
@@ -288,7 +313,72 @@ class Autopilot:
                     return "arrived"
             else:
                 arrived_since = None
-        return "mission_time"
+
+    def _await_vehicle_return(self) -> None:
+        """The vehicle's heartbeat vanished: stop commanding, wait for it, redo the handshake."""
+        cfg = self.cfg
+        self.link.stop_setpoint_stream()
+        self.clog.event("vehicle_lost", heartbeat_age_s=self.link.heartbeat_age_s(), note="setpoints stopped; waiting")
+        t = time.monotonic()
+        deadline = t + cfg.vehicle_timeout_s
+        while not self.stop.is_set():
+            try:
+                self.link.wait_heartbeat(min(1.0, max(0.01, deadline - time.monotonic())), newer_than_monotonic_s=t)
+                break
+            except BridgeError:
+                if time.monotonic() > deadline:
+                    raise AutopilotError(f"vehicle {cfg.system_id} did not come back within {cfg.vehicle_timeout_s} s "
+                                         f"(--vehicle-timeout-s)") from None
+        if self.stop.is_set():
+            return
+        self.link.wait_local_position(None, cfg.vehicle_timeout_s)
+        self.clog.event("vehicle_back")
+        self.take_off()
+
+    # ---------------------------------------------------------------- checkpoints
+    def _identity(self) -> dict:
+        c = self.cfg
+        return {"swarm": c.swarm, "instance": c.instance, "n": c.n, "mode": c.mode, "preset": c.preset,
+                "lockstep": c.lockstep, "sites": None if c.sites_m is None else [list(x) for x in c.sites_m]}
+
+    def _checkpoint(self, k: int) -> None:
+        """Persist what must survive a controller crash (the t = 0 exchange as held by the
+        controller, its learned weights, the mission clock), atomically."""
+        if not self.cfg.state_dir:
+            return
+        blob = pickle.dumps({"version": 1, "identity": self._identity(), "step": k, "ctrl": self.ctrl,
+                             "mission_start_unix_s": self.mission_start_unix_s, "states_received_t0": self.n_t0},
+                            protocol=pickle.HIGHEST_PROTOCOL)
+        d = Path(self.cfg.state_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        tmp = d / f".checkpoint.{os.getpid()}.tmp"
+        with open(tmp, "wb") as fh:
+            fh.write(blob)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, d / "checkpoint.pkl")
+
+    def try_resume(self) -> bool:
+        """Load the checkpoint of a previous run of this same vehicle's mission, if any."""
+        if not self.cfg.state_dir:
+            return False
+        path = Path(self.cfg.state_dir) / "checkpoint.pkl"
+        if not path.exists():
+            return False
+        try:
+            with open(path, "rb") as fh:
+                ck = pickle.load(fh)
+        except Exception as exc:  # a corrupt checkpoint is reported, never trusted
+            self.clog.event("checkpoint_unreadable", path=str(path), error=f"{type(exc).__name__}: {exc}")
+            return False
+        if ck.get("version") != 1 or ck.get("identity") != self._identity():
+            self.clog.event("checkpoint_ignored", path=str(path), note="it belongs to another mission or configuration")
+            return False
+        self.ctrl = ck["ctrl"]
+        self.mission_start_unix_s = ck["mission_start_unix_s"]
+        self.n_t0 = ck["states_received_t0"]
+        self.clog.event("resumed", from_step=ck["step"], note="no new swarm exchange: t = 0 states and weights from the checkpoint")
+        return True
 
     def _resume_offboard(self) -> None:
         """Telemetry is back: stream setpoints again. Whether the vehicle's failsafe left
@@ -341,7 +431,7 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
         s0 = _state_of(p0)
         with SwarmExchange(cfg.zenoh, _swarm_key(cfg.swarm), cfg.instance, cfg.n) as exchange:
             ap = Autopilot(cfg, link, exchange, clog, stop)
-            n_t0 = ap.join_swarm(s0)
+            n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
             if stop.is_set():
                 reason = "signal"
             else:

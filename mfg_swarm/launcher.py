@@ -235,6 +235,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
             argv = [py, "-m", "mfg_autopilot.cli", "--instance", str(i), "--connect", f"udpin:127.0.0.1:{mav_ports[i]}",
                     "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", f"run{os.getpid()}",
                     "--mission", str(out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
+                    "--state-dir", str(out / "controllers" / f"state{i}"),
                     "--log-level", "WARNING", "--exchange-timeout-s", repr(cfg.startup_timeout_s)]
             if cfg.range_m is not None:
                 argv += ["--range-m", repr(float(cfg.range_m))]

@@ -94,8 +94,8 @@ def test_stale_telemetry_stops_setpoints_and_resumes_when_it_returns(tmp_path):
             "--initial-pos-m", "150,100"]
     log = tmp_path / "c.jsonl"
     with spawn(mavproxy, log_dir=tmp_path, name="mavproxy", stop_timeout_s=3.0) as mp, spawn(mock, log_dir=tmp_path, name="mock") as mv:
-        with spawn(_autopilot(f"udpin:127.0.0.1:{p_out}", "--steps", "25", "--preset", "paper", "--log", str(log)),
-                   log_dir=tmp_path, name="ap", stop_signal=signal.SIGINT) as ap:
+        with spawn(_autopilot(f"udpin:127.0.0.1:{p_out}", "--steps", "25", "--preset", "paper", "--log", str(log),
+                              "--vehicle-lost-s", "30"), log_dir=tmp_path, name="ap", stop_signal=signal.SIGINT) as ap:
             wait_until(lambda: log.exists() and sum('"type":"step"' in l for l in log.read_text().splitlines()) >= 3, 60, "3 control steps")
             mp.popen.send_signal(signal.SIGSTOP)              # the link falls silent both ways
             try:
@@ -113,3 +113,25 @@ def test_stale_telemetry_stops_setpoints_and_resumes_when_it_returns(tmp_path):
     # after the vehicle's failsafe put it in HOLD, the controller re-entered OFFBOARD and flew on
     assert whats.count("offboard") >= 2
     assert sum(r["type"] == "step" for r in recs) >= 10
+
+
+def test_vehicle_restart_is_seen_and_the_handshake_is_redone(tmp_path):
+    """The vehicle process dies and comes back on the same port: the controller sees the
+    heartbeat vanish, stops commanding, waits, and redoes arm + OFFBOARD."""
+    port = free_udp_port()
+    mock = [PYTHON, "-m", "mock_vehicle.cli", "--onboard-url", f"udpout:127.0.0.1:{port}", "--gcs-url", "none", "--initial-pos-m", "150,100"]
+    log = tmp_path / "c.jsonl"
+    with spawn(_autopilot(f"udpin:127.0.0.1:{port}", "--steps", "14", "--preset", "paper", "--log", str(log), "--vehicle-lost-s", "2"),
+               log_dir=tmp_path, name="ap", stop_signal=signal.SIGINT) as ap:
+        with spawn(mock, log_dir=tmp_path, name="mock1") as first:
+            wait_until(lambda: log.exists() and log.read_text().count('"type":"step"') >= 2, 60, "2 control steps")
+            first.popen.kill()
+        wait_until(lambda: '"vehicle_lost"' in log.read_text(), 10, "vehicle_lost event")
+        with spawn(mock, log_dir=tmp_path, name="mock2"):
+            wait_until(lambda: '"vehicle_back"' in log.read_text(), 20, "vehicle_back event")
+            wait_until(lambda: ap.popen.poll() is not None, 60, "controller to finish")
+    assert ap.popen.returncode == 0
+    whats = [r.get("what") for r in _records(log) if r["type"] == "event"]
+    i = whats.index("vehicle_lost")
+    assert whats[i:].index("vehicle_back") < whats[i:].index("armed") < whats[i:].index("offboard")
+    assert [r for r in _records(log) if r["type"] == "end"][0]["reason"] == "mission_time"
