@@ -48,6 +48,8 @@ from typing import Callable, Iterable, Sequence
 import zenoh
 
 __all__ = [
+    "MAX_BUFFERED_STEPS",
+    "MAX_STEP",
     "PAYLOAD_FORMAT",
     "PAYLOAD_MAGIC",
     "PAYLOAD_SIZE",
@@ -73,6 +75,12 @@ PAYLOAD_FORMAT = "<2sBBIqd4d"
 PAYLOAD_SIZE = struct.calcsize(PAYLOAD_FORMAT)  # 56
 _PAYLOAD = struct.Struct(PAYLOAD_FORMAT)
 _U32_MAX = 2**32 - 1
+# Highest valid step (2**53 - 1: exact as a float64 / JSON number). Larger steps are rejected
+# ("range"): an absurd step would otherwise pin a sender's latest state.
+MAX_STEP = 2**53 - 1
+# At most this many distinct future steps are buffered for lockstep gossip (memory bound
+# against a sender that publishes many future steps); lockstep needs two.
+MAX_BUFFERED_STEPS = 1024
 
 ZENOH_MODES = ("peer", "client", "router")
 _SWARM_RE = re.compile(r"^[A-Za-z0-9_\-.]+$")
@@ -98,7 +106,8 @@ class ExchangeTimeout(ExchangeError, TimeoutError):
 
 class PayloadError(ExchangeError, ValueError):
     """A state payload does not parse. ``kind`` is one of: length, magic, version, flags,
-    non_finite, range, key."""
+    non_finite, range; on the wire also key (key id != payload id, or not a canonical
+    decimal) and unknown_id (a vehicle id outside the swarm's expected ids)."""
 
     def __init__(self, kind: str, message: str):
         super().__init__(f"bad state payload ({kind}): {message}")
@@ -213,8 +222,11 @@ def init_key(swarm: str, vehicle_id: int | str) -> str:
 
 
 def _id_from_key(key: str) -> int | None:
+    """The vehicle id of a key's last chunk, if it is a canonical decimal ("7", not "07")."""
     last = key.rsplit("/", 1)[-1]
-    return int(last) if last.isdigit() else None
+    if not (last.isascii() and last.isdigit()) or str(int(last)) != last:
+        return None
+    return int(last)
 
 
 # --------------------------------------------------------------------------------------
@@ -238,8 +250,8 @@ class StateMsg:
             raise PayloadError("length", f"state must have 4 entries, got {len(st)}")
         if not (0 <= int(self.vehicle_id) <= _U32_MAX):
             raise PayloadError("range", f"vehicle_id {self.vehicle_id} not in u32")
-        if int(self.step) < 0:
-            raise PayloadError("range", f"step {self.step} < 0")
+        if not (0 <= int(self.step) <= MAX_STEP):
+            raise PayloadError("range", f"step {self.step} not in [0, {MAX_STEP}]")
         if not all(math.isfinite(v) for v in (float(self.time_s), *st)):
             raise PayloadError("non_finite", f"non-finite time/state {self.time_s} {st}")
         return _PAYLOAD.pack(PAYLOAD_MAGIC, PAYLOAD_VERSION, 0, int(self.vehicle_id),
@@ -257,8 +269,8 @@ class StateMsg:
             raise PayloadError("version", f"version {version}, expected {PAYLOAD_VERSION}")
         if flags != 0:
             raise PayloadError("flags", f"flags {flags:#x}, expected 0")
-        if step < 0:
-            raise PayloadError("range", f"step {step} < 0")
+        if not (0 <= step <= MAX_STEP):
+            raise PayloadError("range", f"step {step} not in [0, {MAX_STEP}]")
         if not all(math.isfinite(v) for v in (time_s, x, y, vx, vy)):
             raise PayloadError("non_finite", f"time/state not finite: {time_s} {(x, y, vx, vy)}")
         return StateMsg(vid, step, time_s, (x, y, vx, vy))
@@ -330,6 +342,7 @@ class SwarmExchange:
         self.states_received_by_step: dict[int, int] = {}
         self.states_heard_total = 0
         self.malformed_counts: dict[str, int] = {}
+        self.buffer_overflow_count = 0  # lockstep buffer full (MAX_BUFFERED_STEPS): step dropped
 
         self._session: zenoh.Session | None = None
         self._publisher = None
@@ -468,12 +481,26 @@ class SwarmExchange:
             return
         if msg.vehicle_id == self.vehicle_id:
             return
+        if msg.vehicle_id not in self.expected_ids:
+            self._drop("unknown_id", f"{key}: vehicle {msg.vehicle_id} is not in this swarm")
+            return
+        overflow = False
         with self._cond:
             self.states_heard_total += 1
             if msg.step == 0:
                 self._init_states.setdefault(msg.vehicle_id, msg)
             if msg.step >= self._min_step_kept:
-                self._by_step.setdefault(msg.step, {})[msg.vehicle_id] = msg
+                keep = True
+                if msg.step not in self._by_step and len(self._by_step) >= MAX_BUFFERED_STEPS:
+                    # full: keep the nearest steps (lockstep needs the next one); drop the
+                    # farthest future step, or this one if it is the farthest
+                    overflow = True
+                    farthest = max(self._by_step)
+                    keep = msg.step < farthest
+                    if keep:
+                        del self._by_step[farthest]
+                if keep:
+                    self._by_step.setdefault(msg.step, {})[msg.vehicle_id] = msg
             prev = self._latest.get(msg.vehicle_id)
             if prev is None or msg.step >= prev.step:
                 self._latest[msg.vehicle_id] = msg
@@ -482,6 +509,14 @@ class SwarmExchange:
                 log.info("vehicle %d: vehicle %d publishes again (step %d)",
                          self.vehicle_id, msg.vehicle_id, msg.step)
             self._cond.notify_all()
+            if overflow:
+                self.buffer_overflow_count += 1
+                first_overflow = self.buffer_overflow_count == 1
+        if overflow and first_overflow:
+            log.warning("vehicle %d: %d future steps already buffered (state of vehicle %d "
+                        "step %d); the farthest step not buffered for lockstep (further "
+                        "overflows only counted)",
+                        self.vehicle_id, MAX_BUFFERED_STEPS, msg.vehicle_id, msg.step)
 
     def _on_init_query(self, query) -> None:
         payload = self._own_init
@@ -569,7 +604,8 @@ class SwarmExchange:
             if lockstep:
                 while True:
                     got = self._by_step.get(step, {})
-                    waiting = self._present - {self.vehicle_id} - self._silent - set(got)
+                    waiting = ((self._present & self.expected_ids) - {self.vehicle_id}
+                               - self._silent - set(got))
                     if not waiting:
                         break
                     left = deadline - time.monotonic()
