@@ -17,6 +17,7 @@ from .errors import (
 )
 from .link import COMPANION_COMPONENT_ID, VehicleLink
 from .messages import (
+    AdsbVehicle,
     Attitude,
     AutopilotVersion,
     BadData,
@@ -29,6 +30,7 @@ from .messages import (
     HomePosition,
     LocalPositionNed,
     Message,
+    NamedValueInt,
     ParamRequestList,
     ParamRequestRead,
     ParamSet,

@@ -19,6 +19,7 @@ os.environ["MAVLINK20"] = "1"  # must precede any pymavlink import (SPEC 4)
 from pymavlink.dialects.v20 import common as _mavlink  # noqa: E402
 
 from .messages import (  # noqa: E402
+    AdsbVehicle,
     Attitude,
     AutopilotVersion,
     BadData,
@@ -31,6 +32,7 @@ from .messages import (  # noqa: E402
     HomePosition,
     LocalPositionNed,
     Message,
+    NamedValueInt,
     ParamRequestList,
     ParamRequestRead,
     ParamSet,
@@ -157,6 +159,22 @@ _ENCODERS: dict[type, Callable] = {
     AutopilotVersion: lambda mav, m: mav.autopilot_version_encode(
         m.capabilities, m.flight_sw_version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, m.uid
     ),
+    AdsbVehicle: lambda mav, m: mav.adsb_vehicle_encode(
+        m.icao_address & 0xFFFFFFFF,
+        m.lat_e7,
+        m.lon_e7,
+        m.altitude_type,
+        m.altitude_mm,
+        m.heading_cdeg,
+        m.hor_velocity_cm_s,
+        m.ver_velocity_cm_s,
+        _s(m.callsign[:8]),
+        m.emitter_type,
+        m.tslc_s,
+        m.flags,
+        m.squawk,
+    ),
+    NamedValueInt: lambda mav, m: mav.named_value_int_encode(m.time_boot_ms & 0xFFFFFFFF, _s(m.name[:10]), m.value),
 }
 
 
@@ -226,6 +244,22 @@ _DECODERS: dict[str, Callable] = {
     "PARAM_REQUEST_LIST": lambda p: ParamRequestList(p.target_system, p.target_component),
     "STATUSTEXT": lambda p: StatusText(p.severity, _str(p.text)),
     "AUTOPILOT_VERSION": lambda p: AutopilotVersion(p.capabilities, p.flight_sw_version, p.uid),
+    "ADSB_VEHICLE": lambda p: AdsbVehicle(
+        p.ICAO_address,
+        p.lat,
+        p.lon,
+        p.altitude_type,
+        p.altitude,
+        p.heading,
+        p.hor_velocity,
+        p.ver_velocity,
+        _str(p.callsign),
+        p.emitter_type,
+        p.tslc,
+        p.flags,
+        p.squawk,
+    ),
+    "NAMED_VALUE_INT": lambda p: NamedValueInt(p.time_boot_ms, _str(p.name), p.value),
 }
 
 

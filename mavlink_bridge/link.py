@@ -37,12 +37,15 @@ from .errors import (
     ModeNotConfirmed,
     TelemetryTimeout,
 )
+from .adsb import TRAFFIC_MARKER_NAME, parse_traffic_tag
 from .messages import (
+    AdsbVehicle,
     CommandAck,
     CommandLong,
     Heartbeat,
     LocalPositionNed,
     Message,
+    NamedValueInt,
     ParamRequestList,
     ParamRequestRead,
     ParamSet,
@@ -76,6 +79,9 @@ log = logging.getLogger(__name__)
 
 COMPANION_COMPONENT_ID = 191
 """MAV_COMP_ID_ONBOARD_COMPUTER: the companion computer's component id (issue 4)."""
+
+MAX_PARAMS = 4096
+"""Most parameter names a link keeps (a forged PARAM_VALUE flood must not grow it forever)."""
 
 M = TypeVar("M", bound=Message)
 
@@ -114,6 +120,8 @@ class VehicleLink:
         self.accept_unsigned = bool(accept_unsigned)
         self.rejects = RejectLog(log)
         """Rejected input by kind (``rejects.counts``); each kind is logged once, then counted."""
+        self._traffic: dict[int, dict[int, AdsbVehicle]] = {}      # tag time_boot_ms -> icao -> report
+        self._traffic_markers: dict[int, NamedValueInt] = {}        # tag time_boot_ms -> completion marker
         self._held: SetPositionTargetLocalNed | None = None
         self._held_time_boot_ms: int | None = None
         self._stream_stop: threading.Event | None = None
@@ -217,13 +225,83 @@ class VehicleLink:
         if isinstance(msg, Heartbeat) and r.src_component != self.target_component and self.target_component != 0:
             return  # e.g. a camera or gimbal of the same vehicle
         with self._cond:
+            if isinstance(msg, (AdsbVehicle, NamedValueInt)):
+                self._on_traffic(msg)
             if isinstance(msg, CommandAck):
                 if msg.target_system in (0, self.port.source_system) and msg.target_component in (0, self.port.source_component):
                     self._acks.append(msg)
             elif isinstance(msg, ParamValue):
-                self._params[msg.param_id] = msg
+                if len(self._params) < MAX_PARAMS or msg.param_id in self._params:
+                    self._params[msg.param_id] = msg
+                else:
+                    self.rejects.reject("PARAM_VALUE beyond the parameter table limit", f"{MAX_PARAMS} names already")
             self._latest[type(msg)] = msg
             self._cond.notify_all()
+
+    TRAFFIC_SETS_KEPT = 32
+
+    def _on_traffic(self, msg: AdsbVehicle | NamedValueInt) -> None:
+        """Collect tagged traffic sets (docs/proximity.md); caller holds ``_cond``."""
+        if isinstance(msg, NamedValueInt):
+            if msg.name != TRAFFIC_MARKER_NAME:
+                return
+            tag = msg.time_boot_ms
+            self._traffic_markers[tag] = msg
+            self._traffic.setdefault(tag, {})
+        else:
+            tag = parse_traffic_tag(msg.callsign)
+            if tag is None:
+                return  # traffic that is not part of a tagged set (e.g. real ADS-B): not the sensor
+            self._traffic.setdefault(tag, {})[msg.icao_address] = msg
+        while len(self._traffic) > self.TRAFFIC_SETS_KEPT:
+            oldest = min(self._traffic)
+            self._traffic.pop(oldest)
+            self._traffic_markers.pop(oldest, None)
+
+    def _complete_traffic(self, tag: int) -> list[AdsbVehicle] | None:
+        marker = self._traffic_markers.get(tag)
+        if marker is None:
+            return None
+        reports = self._traffic.get(tag, {})
+        if len(reports) < marker.value:
+            return None
+        return sorted(reports.values(), key=lambda r: r.icao_address)
+
+    def has_traffic_sensor(self) -> bool:
+        """True once the vehicle has sent a traffic-set marker: it has a proximity sensor."""
+        with self._cond:
+            return bool(self._traffic_markers)
+
+    def sensed_traffic(self, time_boot_ms: int, timeout_s: float) -> list[AdsbVehicle]:
+        """The complete traffic set the vehicle sensed at ``time_boot_ms`` (lockstep: the
+        set of the step whose LOCAL_POSITION_NED is stamped so), sorted by ICAO address.
+        Raises TelemetryTimeout if it is not complete within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                got = self._complete_traffic(int(time_boot_ms))
+                if got is not None:
+                    return got
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TelemetryTimeout(f"traffic set (ADSB_VEHICLE + {TRAFFIC_MARKER_NAME}) at {time_boot_ms} ms",
+                                           self.target_system, timeout_s)
+                if self._closed.is_set():
+                    raise LinkClosed(f"link to system {self.target_system} closed while waiting for traffic")
+                self._cond.wait(min(remaining, 0.2))
+
+    def latest_traffic(self, max_age_s: float) -> tuple[int, list[AdsbVehicle]] | None:
+        """Real time: (time_boot_ms, reports) of the newest complete traffic set whose marker
+        arrived less than ``max_age_s`` ago, or None."""
+        now = time.monotonic()
+        with self._cond:
+            for tag in sorted(self._traffic_markers, reverse=True):
+                if now - self._traffic_markers[tag].received_monotonic_s >= max_age_s:
+                    continue
+                got = self._complete_traffic(tag)
+                if got is not None:
+                    return tag, got
+        return None
 
     def _hb_loop(self) -> None:
         next_t = time.monotonic()

@@ -47,6 +47,8 @@ __all__ = [
     "ParamRequestList",
     "StatusText",
     "AutopilotVersion",
+    "AdsbVehicle",
+    "NamedValueInt",
     "BadData",
     "UnknownMessage",
     "Received",
@@ -357,6 +359,40 @@ class AutopilotVersion(Message):
     capabilities: int
     flight_sw_version: int = 0
     uid: int = 0
+    received_monotonic_s: float = field(default=_NAN, compare=False)
+
+
+@dataclass(frozen=True)
+class AdsbVehicle(Message):
+    """ADSB_VEHICLE (#246): one traffic report, as PX4 forwards it for traffic avoidance.
+    Kept in wire units (degE7, mm, cdeg, cm/s) so that nothing is lost in a conversion;
+    ``mavlink_bridge.adsb`` turns a set of them into local NED states (docs/proximity.md)."""
+
+    MSG_NAME: ClassVar[str] = "ADSB_VEHICLE"
+    icao_address: int
+    lat_e7: int
+    lon_e7: int
+    altitude_type: int = 1             # ADSB_ALTITUDE_TYPE_GEOMETRIC
+    altitude_mm: int = 0
+    heading_cdeg: int = 0              # course over ground, 0..35999, clockwise from north
+    hor_velocity_cm_s: int = 0
+    ver_velocity_cm_s: int = 0         # positive up
+    callsign: str = ""
+    emitter_type: int = 14             # ADSB_EMITTER_TYPE_UAV
+    tslc_s: int = 0
+    flags: int = 0
+    squawk: int = 0
+    received_monotonic_s: float = field(default=_NAN, compare=False)
+
+
+@dataclass(frozen=True)
+class NamedValueInt(Message):
+    """NAMED_VALUE_INT (#252): a named integer (name up to 10 characters)."""
+
+    MSG_NAME: ClassVar[str] = "NAMED_VALUE_INT"
+    time_boot_ms: int
+    name: str
+    value: int
     received_monotonic_s: float = field(default=_NAN, compare=False)
 
 

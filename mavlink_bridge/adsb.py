@@ -1,0 +1,122 @@
+"""Traffic (ADSB_VEHICLE) as local NED states: the controller side of the emulated
+proximity sensor (docs/proximity.md).
+
+A vehicle with a proximity sensor forwards every vehicle it senses as ADSB_VEHICLE (#246),
+as PX4 forwards ADS-B/FLARM traffic for traffic avoidance, followed by one completion
+marker NAMED_VALUE_INT(time_boot_ms = t, name = ``TRAFFIC_MARKER_NAME``, value = count).
+Every ADSB_VEHICLE of the set carries the same ``t`` in its callsign
+(``traffic_tag(t)`` = 8 hex digits), so a set is complete when its marker and ``count``
+reports tagged ``t`` have arrived, whatever the arrival order.
+
+Wire resolution (common.xml): lat/lon 1e-7 deg (~1.1 cm north, ~0.75 cm east at 47 deg),
+hor_velocity 1 cm/s, heading 0.01 deg. Positions are flat-earth offsets from the swarm's
+shared home, in whole degE7 steps from the home's own degE7 (what HOME_POSITION carries),
+so the conversion never depends on float rounding of absolute latitudes.
+
+``traffic_to_local_ned`` is the one decoding function: the link uses it on received
+messages, and the simulator's ``mock_vehicle.proximity.quantise_sensed_states`` uses it on
+the integers the mock would send, so both give bit-identical states (test_proximity.py).
+It is exact IEEE arithmetic only (integer differences times constants, a cos/sin table
+indexed by the integer heading): no vectorised transcendental whose last bit could
+depend on the array length.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .messages import AdsbVehicle, HomePosition
+
+__all__ = [
+    "EARTH_RADIUS_M",
+    "TRAFFIC_MARKER_NAME",
+    "ADSB_FLAGS_EMULATED",
+    "traffic_tag",
+    "parse_traffic_tag",
+    "metres_per_e7",
+    "home_e7",
+    "traffic_to_local_ned",
+    "adsb_states",
+    "vehicle_id_of_icao",
+    "icao_of_vehicle_id",
+]
+
+EARTH_RADIUS_M = 6_378_137.0
+"""WGS84 equatorial radius; the mock's flat-earth conversion uses the same (GLOBAL_POSITION_INT)."""
+
+TRAFFIC_MARKER_NAME = "TRAFFIC_N"
+"""NAMED_VALUE_INT name of the completion marker of a traffic set (value = its size)."""
+
+ADSB_FLAGS_EMULATED = 1 | 2 | 4 | 8 | 16 | 64
+"""VALID_COORDS | VALID_ALTITUDE | VALID_HEADING | VALID_VELOCITY | VALID_CALLSIGN | SIMULATED."""
+
+_DEG_PER_E7 = 1e-7
+_COS_CDEG = np.array([math.cos(math.radians(h * 0.01)) for h in range(36000)])
+_SIN_CDEG = np.array([math.sin(math.radians(h * 0.01)) for h in range(36000)])
+
+
+def traffic_tag(time_boot_ms: int) -> str:
+    """The callsign that tags a traffic report with the set it belongs to."""
+    return f"{int(time_boot_ms) & 0xFFFFFFFF:08X}"
+
+
+def parse_traffic_tag(callsign: str) -> int | None:
+    """time_boot_ms of a tag, or None if the callsign is not a tag."""
+    if len(callsign) != 8:
+        return None
+    try:
+        return int(callsign, 16)
+    except ValueError:
+        return None
+
+
+def icao_of_vehicle_id(vehicle_id: int) -> int:
+    """ICAO address of a swarm vehicle: its MAVLink system id (vehicle id + 1)."""
+    return int(vehicle_id) + 1
+
+
+def vehicle_id_of_icao(icao_address: int) -> int:
+    return int(icao_address) - 1
+
+
+def home_e7(home: HomePosition | tuple[float, float]) -> tuple[int, int]:
+    """Home latitude/longitude in whole degE7 (exactly what HOME_POSITION carries)."""
+    lat, lon = (home.lat_deg, home.lon_deg) if isinstance(home, HomePosition) else home
+    return int(round(lat * 1e7)), int(round(lon * 1e7))
+
+
+def metres_per_e7(home_lat_e7: int) -> tuple[float, float]:
+    """Flat-earth size of one degE7 step north and east at the home latitude, m."""
+    north = math.radians(_DEG_PER_E7) * EARTH_RADIUS_M
+    return north, north * math.cos(math.radians(home_lat_e7 * _DEG_PER_E7))
+
+
+def traffic_to_local_ned(lat_e7, lon_e7, hor_velocity_cm_s, heading_cdeg, home_lat_e7: int, home_lon_e7: int) -> np.ndarray:
+    """Traffic in wire units -> local NED states (m, 4) [x_m, y_m, vx_m_s, vy_m_s].
+
+    x = (lat - home_lat) * m_north, y = (lon - home_lon) * m_east (degE7 steps), speed
+    = hor_velocity / 100, (vx, vy) = speed * (cos, sin)(heading)."""
+    lat = np.asarray(lat_e7, dtype=np.int64).reshape(-1)
+    lon = np.asarray(lon_e7, dtype=np.int64).reshape(-1)
+    spd = np.asarray(hor_velocity_cm_s, dtype=np.int64).reshape(-1)
+    hdg = np.asarray(heading_cdeg, dtype=np.int64).reshape(-1) % 36000
+    m_n, m_e = metres_per_e7(home_lat_e7)
+    out = np.empty((lat.shape[0], 4))
+    out[:, 0] = (lat - home_lat_e7).astype(np.float64) * m_n
+    out[:, 1] = (lon - home_lon_e7).astype(np.float64) * m_e
+    speed = spd.astype(np.float64) / 100.0
+    out[:, 2] = speed * _COS_CDEG[hdg]
+    out[:, 3] = speed * _SIN_CDEG[hdg]
+    return out
+
+
+def adsb_states(reports: list[AdsbVehicle], home: HomePosition | tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """(vehicle ids (m,), local NED states (m, 4)) of a traffic set, sorted by vehicle id."""
+    reports = sorted(reports, key=lambda r: r.icao_address)
+    h_lat, h_lon = home_e7(home)
+    ids = np.array([vehicle_id_of_icao(r.icao_address) for r in reports], dtype=np.int64)
+    states = traffic_to_local_ned([r.lat_e7 for r in reports], [r.lon_e7 for r in reports],
+                                  [r.hor_velocity_cm_s for r in reports], [r.heading_cdeg for r in reports], h_lat, h_lon)
+    return ids, states

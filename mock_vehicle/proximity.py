@@ -1,0 +1,95 @@
+"""The emulated onboard proximity sensor: which vehicles a vehicle senses, and what it
+reports of them as ADSB_VEHICLE (docs/proximity.md). Pure functions; the world process
+(``mock_vehicle.world``), the mock vehicle and the in-process simulator all use them, so
+the sensed sets and their wire resolution are the same on every path.
+
+- ``sensed_pairs``: every pair within ``range_m`` (Euclidean, <=) of the float32-rounded
+  true positions, by scipy's cKDTree over all N vehicles in id order (the simulator's
+  query, the same array in the same order, so boundary cases agree too).
+- ``encode_traffic``: a state -> ADSB_VEHICLE integers (scalar ``math``, per vehicle).
+- ``quantise_sensed_states``: what a controller decodes from those integers
+  (``mavlink_bridge.adsb.traffic_to_local_ned``), i.e. encode then the bridge's decode.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mavlink_bridge import AdsbVehicle
+from mavlink_bridge.adsb import (
+    ADSB_FLAGS_EMULATED,
+    home_e7,
+    icao_of_vehicle_id,
+    metres_per_e7,
+    traffic_tag,
+    traffic_to_local_ned,
+)
+
+__all__ = ["DEFAULT_HOME_DEG", "DEFAULT_HOME_ALT_AMSL_M", "sensed_pairs", "sensed_rows", "encode_traffic",
+           "traffic_reports", "quantise_sensed_states"]
+
+DEFAULT_HOME_DEG = (47.397742, 8.545594)
+"""The mock's default home (PX4 SITL's Zurich home); every mock of a swarm shares one home."""
+DEFAULT_HOME_ALT_AMSL_M = 488.0
+
+
+def sensed_pairs(states_f32: np.ndarray, range_m: float) -> np.ndarray:
+    """Undirected pairs (p, 2), i < j, of vehicles within ``range_m`` of each other.
+    states_f32: (n, 4) float32-rounded true states in vehicle-id order."""
+    s = np.asarray(states_f32, dtype=np.float64)
+    if s.shape[0] < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    return np.asarray(cKDTree(s[:, 0:2]).query_pairs(float(range_m), output_type="ndarray"), dtype=np.int64).reshape(-1, 2)
+
+
+def sensed_rows(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both directions of each pair as (owner (m,), other (m,)), sorted by (owner, other):
+    the order in which a vehicle receives its traffic (by ICAO address)."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    owner = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    other = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    order = np.lexsort((other, owner))
+    return owner[order], other[order]
+
+
+def encode_traffic(states: np.ndarray, home_deg: tuple[float, float] = DEFAULT_HOME_DEG) -> np.ndarray:
+    """ADS-B integers (m, 4) [lat_e7, lon_e7, hor_velocity_cm_s, heading_cdeg] of states (m, 4).
+
+    Flat earth around the home: lat = home_lat + round(x / m_north) degE7, likewise east;
+    speed = round(|v| * 100) cm/s (capped at 65535), heading = round(atan2(vy, vx) in
+    0.01 deg) mod 36000 (0 when at rest). Scalar ``math`` per vehicle: the integers do not
+    depend on how many vehicles are encoded together."""
+    h_lat, h_lon = home_e7(home_deg)
+    m_n, m_e = metres_per_e7(h_lat)
+    s = np.asarray(states, dtype=np.float64).reshape(-1, 4)
+    out = np.empty((s.shape[0], 4), dtype=np.int64)
+    for i, (x, y, vx, vy) in enumerate(s.tolist()):
+        speed = math.hypot(vx, vy)
+        out[i, 0] = h_lat + round(x / m_n)
+        out[i, 1] = h_lon + round(y / m_e)
+        out[i, 2] = min(round(speed * 100.0), 65535)
+        out[i, 3] = round(math.degrees(math.atan2(vy, vx)) * 100.0) % 36000 if speed > 0 else 0
+    return out
+
+
+def traffic_reports(ids: np.ndarray, states: np.ndarray, time_boot_ms: int, home_deg: tuple[float, float] = DEFAULT_HOME_DEG,
+                    altitude_amsl_m: float = DEFAULT_HOME_ALT_AMSL_M + 10.0) -> list[AdsbVehicle]:
+    """The ADSB_VEHICLE messages of one traffic set (tagged ``time_boot_ms``)."""
+    enc = encode_traffic(states, home_deg)
+    tag = traffic_tag(time_boot_ms)
+    alt_mm = int(round(altitude_amsl_m * 1000.0))
+    return [AdsbVehicle(icao_address=icao_of_vehicle_id(int(v)), lat_e7=int(e[0]), lon_e7=int(e[1]), altitude_type=1,
+                        altitude_mm=alt_mm, heading_cdeg=int(e[3]), hor_velocity_cm_s=int(e[2]), ver_velocity_cm_s=0,
+                        callsign=tag, emitter_type=14, tslc_s=0, flags=ADSB_FLAGS_EMULATED, squawk=0)
+            for v, e in zip(np.asarray(ids).reshape(-1).tolist(), enc)]
+
+
+def quantise_sensed_states(states: np.ndarray, home_deg: tuple[float, float] = DEFAULT_HOME_DEG) -> np.ndarray:
+    """States (m, 4) as a controller decodes them from ADSB_VEHICLE: bit-identical to
+    ``mavlink_bridge.adsb.adsb_states`` of the messages ``traffic_reports`` builds."""
+    enc = encode_traffic(states, home_deg)
+    h_lat, h_lon = home_e7(home_deg)
+    return traffic_to_local_ned(enc[:, 0], enc[:, 1], enc[:, 2], enc[:, 3], h_lat, h_lon)
