@@ -272,6 +272,18 @@ class VehicleLink:
         with self._cond:
             return bool(self._traffic_markers)
 
+    def wait_traffic_sensor(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for a first traffic-set marker; True if the vehicle has a
+        proximity sensor (it re-sends its current set several times a second)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not self._traffic_markers:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closed.is_set():
+                    return False
+                self._cond.wait(min(remaining, 0.2))
+            return True
+
     def sensed_traffic(self, time_boot_ms: int, timeout_s: float) -> list[AdsbVehicle]:
         """The complete traffic set the vehicle sensed at ``time_boot_ms`` (lockstep: the
         set of the step whose LOCAL_POSITION_NED is stamped so), sorted by ICAO address.

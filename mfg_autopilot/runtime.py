@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mavlink_bridge import BridgeError, LocalPositionNed, TelemetryTimeout, VehicleLink
+from mavlink_bridge import BridgeError, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink
+from mavlink_bridge.adsb import adsb_states
 
 from .controller import Neighbours, Observation, make_controller
 from .exchange import SwarmExchange, ZenohSettings
@@ -81,6 +82,8 @@ class AutopilotConfig:
     setpoint_rate_hz: float = 20.0
     vehicle_lost_s: float = 3.0               # heartbeat silence after which the vehicle is lost
     state_dir: str | None = None              # checkpoints for a restart without a new exchange
+    traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
+    traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -157,6 +160,8 @@ class Autopilot:
         self.gossips = cfg.mode.startswith("hjb")
         self.mission_start_unix_s: float | None = None
         self.n_t0 = 0
+        self._traffic_sensor: bool | None = None    # proximity sensor on the vehicle (decided at the first step)
+        self._home: HomePosition | None = None
 
     # ---------------------------------------------------------------- phases
     def join_swarm(self, s0: np.ndarray) -> int:
@@ -199,7 +204,39 @@ class Autopilot:
                                    np.array([m.vehicle_id for m in msgs], dtype=np.int64))
             else:
                 heard = Neighbours.empty()
-        return Observation(k, time_s, state[None, :], heard, None)
+        return Observation(k, time_s, state[None, :], heard, self._sensed(int(round(time_s * 1000))))
+
+    # ---- proximity sensor (docs/proximity.md): the vehicle's ADSB_VEHICLE traffic as Observation.sensed
+    def _sensed(self, t_ms: int) -> Neighbours | None:
+        """Lockstep: the complete traffic set stamped ``t_ms`` (the step's own time; waited
+        for, bounded by step_timeout_s). Real time: the newest set younger than
+        traffic_max_age_s. None if the controller has no sensor range or the vehicle
+        sent no traffic within traffic_probe_s of the first step (no sensor: no backstop)."""
+        cfg = self.cfg
+        if getattr(self.ctrl, "sensor_range_m", None) is None:
+            return None
+        if self._traffic_sensor is None:
+            self._traffic_sensor = self.link.wait_traffic_sensor(cfg.traffic_probe_s)
+            self.clog.event("proximity_sensor", present=self._traffic_sensor,
+                            note=None if self._traffic_sensor else f"no traffic from the vehicle within {cfg.traffic_probe_s} s: backstop inactive")
+        if not self._traffic_sensor:
+            return None
+        if self._home is None:
+            self._home = self.link.wait_for(HomePosition, lambda h: True, cfg.vehicle_timeout_s)
+            if self._home is None:
+                raise AutopilotError(f"no HOME_POSITION from vehicle {cfg.system_id} within {cfg.vehicle_timeout_s} s: "
+                                     "cannot place its traffic")
+        if cfg.lockstep:
+            try:
+                reports = self.link.sensed_traffic(t_ms, timeout_s=cfg.step_timeout_s)
+            except TelemetryTimeout:
+                raise AutopilotError(f"vehicle {cfg.system_id} sent no complete traffic set for t = {t_ms} ms within "
+                                     f"{cfg.step_timeout_s} s; is its world (mock_vehicle.world) running?") from None
+        else:
+            got = self.link.latest_traffic(cfg.traffic_max_age_s)
+            reports = [] if got is None else got[1]
+        ids, states = adsb_states(reports, self._home)
+        return Neighbours(states, np.zeros(len(ids), dtype=np.int64), ids)
 
     def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation, latency_s: float | None) -> None:
         w = self.ctrl.weights()
@@ -208,6 +245,8 @@ class Autopilot:
                "reg_active": bool(info.reg_active[0]), "residual": float(info.residual[0]) if math.isfinite(info.residual[0]) else None,
                "states_received": 0 if obs.neighbours is None else int(obs.neighbours.states.shape[0]),
                "heard_ids": [] if obs.neighbours is None or obs.neighbours.ids is None else obs.neighbours.ids.tolist(),
+               "sensed_ids": None if obs.sensed is None else obs.sensed.ids.tolist(),
+               "backstop_active": bool(np.asarray(getattr(self.ctrl, "backstop_active", [False]))[0]),
                "w_H": w["w_H"][0]}
         if "w_F" in w:
             rec["w_F"] = w["w_F"][0]

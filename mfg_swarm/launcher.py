@@ -26,7 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mfg_autopilot.controller import make_controller
 from mfg_autopilot.params import preset_by_name
+from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_vehicle_tlog, realtime_grid
 from .results import Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
@@ -202,6 +204,10 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
 
     py = cfg.python
     wind = plant_params_for(preset, cfg.physics_dt_s).wind
+    # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
+    sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
+    world_port = _free_ports(socket.SOCK_DGRAM, 1)[0] if sensor_range_m is not None else None
+    world: list[_Child] = []
     children: list[_Child] = []
     router: list[_Child] = []
     controllers: list[_Child] = []
@@ -219,6 +225,11 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         if cfg.zenoh_router:
             router.append(_Child("zenoh-router", [py, "-m", "mfg_autopilot.zenoh_router", "--zenoh-listen",
                                                   f"tcp/127.0.0.1:{z_ports[n]}"], out / "stderr" / "zenoh-router.log"))
+        if world_port is not None:
+            world.append(_Child("world", [py, "-m", "mock_vehicle.world", "--listen", f"127.0.0.1:{world_port}", "--n", str(n),
+                                          "--sensor-range-m", repr(float(sensor_range_m)), "--log-level", "WARNING",
+                                          "--deadline-s", repr(max(60.0, float(cfg.startup_timeout_s)))]
+                                + (["--lockstep"] if cfg.lockstep else []), out / "stderr" / "world.log"))
         for i in range(n):
             x, y = (float(v) for v in sc.initial_pos_m[i])
             argv = [py, "-m", "mock_vehicle.cli", "--instance", str(i), "--onboard-url", f"udpout:127.0.0.1:{mav_ports[i]}",
@@ -229,6 +240,9 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
+            if world_port is not None:
+                argv += ["--world-url", f"udp:127.0.0.1:{world_port}",
+                         "--home-lat", repr(DEFAULT_HOME_DEG[0]), "--home-lon", repr(DEFAULT_HOME_DEG[1])]
             vehicles.append(_Child(f"vehicle{i}", argv, out / "stderr" / f"vehicle{i}.log"))
         ctrl_logs = [out / "controllers" / f"controller{i}.jsonl" for i in range(n)]
         for i in range(n):
@@ -249,7 +263,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     argv += ["--zenoh-connect", f"tcp/127.0.0.1:{z_ports[0]}"]
             argv += list(cfg.extra_controller_args)
             controllers.append(_Child(f"controller{i}", argv, out / "stderr" / f"controller{i}.log"))
-        children = router + vehicles + controllers
+        children = router + world + vehicles + controllers
 
         # ---- wait for the mission to end, showing progress
         offsets = [0] * n
@@ -272,7 +286,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
             if interrupted["sig"] is not None:
                 reason = "interrupted"
                 break
-            dead_vehicles = [v.name for v in vehicles if not v.alive()]
+            dead_vehicles = [v.name for v in vehicles + world if not v.alive()]
             if dead_vehicles:
                 reason = f"vehicle process exited early: {', '.join(dead_vehicles)}"
                 break
@@ -284,6 +298,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         bar.done()
         killed += _stop_all(controllers, signal.SIGTERM, 20.0)
         killed += _stop_all(vehicles, signal.SIGTERM, 10.0)
+        killed += _stop_all(world, signal.SIGTERM, 5.0)
         killed += _stop_all(router, signal.SIGTERM, 5.0)
     finally:
         if any(c.alive() for c in children):
@@ -330,6 +345,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     grad = np.zeros((T_eff, n), dtype=np.int64)
     mfe = np.zeros((T_eff, n), dtype=np.int64)
     reg = np.zeros((T_eff, n), dtype=bool)
+    backstop = np.zeros((T_eff, n), dtype=bool)
     dest = np.array(json.loads((out / "mission.json").read_text())["sites_m"], dtype=float).reshape(n, 2)
     for i, lg in enumerate(logs):
         for ev in lg.events:
@@ -342,6 +358,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
                 grad[k, i] = rec.get("grad_evals", 0)
                 mfe[k, i] = rec.get("mf_evals", 0)
                 reg[k, i] = rec.get("reg_active", False)
+                backstop[k, i] = rec.get("backstop_active", False)
         if lg.end is not None and lg.end.get("destination_m") is not None:
             dest[i] = lg.end["destination_m"]
     w_ref = np.array([rec["w_H"] for rec in logs[0].steps[: T_eff + 1]], dtype=float) if logs and logs[0].steps else None
@@ -350,4 +367,5 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.mode.startswith("hjb") else None,
                               seed=cfg.seed, wall_s=wall_s, scenario=cfg.scenario.name, preset=preset.name)
     metrics["steps_requested"] = T
+    metrics["backstop_activations"] = int(backstop.sum())
     return traj, metrics

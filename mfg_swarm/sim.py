@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from mfg_autopilot.controller import MODES, Neighbours, Observation, make_controller
 from mfg_autopilot.params import Preset
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
+from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals
 from .results import Trajectories, compute_metrics
@@ -170,8 +171,13 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             heard = Neighbours.from_pairs(obs, pairs)
             comm[k] += heard.counts(n)
         if sensor_range_m is not None and n > 1:
-            # onboard proximity sensor: true neighbour states within its range, no communication
-            sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, 0:2]).query_pairs(sensor_range_m, output_type="ndarray"))
+            # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
+            # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md)
+            owner, other = sensed_rows(sensed_pairs(obs, sensor_range_m))
+            seen = np.unique(other)
+            q = np.zeros_like(obs)
+            q[seen] = quantise_sensed_states(obs[seen])
+            sensed = Neighbours(q[other], owner, other)
         info = ctrl.step(Observation(k, k * dt, obs, heard, sensed))
         acc_cmd = f32(info.acc_m_s2)
         if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:

@@ -58,6 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--signing-key", default=None, metavar="FILE",
                    help="MAVLink 2 signing: 64 hex chars, mode 600; sign everything sent, ignore unsigned/badly signed input")
     p.add_argument("--signing-link-id", type=int, default=0, help="signing link id stamped on what this vehicle sends (0..255)")
+    p.add_argument("--world-url", default=None, metavar="udp:HOST:PORT",
+                   help="proximity sensor: report the true state to this world (mock_vehicle.world) and forward the "
+                        "vehicles it senses as ADSB_VEHICLE (docs/proximity.md); off by default")
+    p.add_argument("--traffic-rate-hz", type=float, default=d.traffic_rate_hz,
+                   help="with --world-url: sensed-traffic rate in real time, re-send rate in lockstep, Hz")
     p.add_argument("--tlog", default=None, help="write a MAVLink .tlog of everything sent and received")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
     return p
@@ -88,6 +93,7 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         deny_arming=args.deny_arming,
         rates_hz=rates,
         lockstep_resend_hz=args.lockstep_resend_hz,
+        traffic_rate_hz=args.traffic_rate_hz,
     )
     onboard = args.onboard_url or f"udpout:127.0.0.1:{14540 + args.instance}"
     urls = [u for u in [onboard, args.gcs_url, *args.extra_url] if u and u.lower() != "none"]
@@ -125,7 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     from .server import run_vehicle
 
     try:
-        run_vehicle(cfg, urls, stop, tlog_path=args.tlog, signing=signing)
+        if args.world_url is not None:
+            from .world import parse_world_url
+
+            parse_world_url(args.world_url)
+        run_vehicle(cfg, urls, stop, tlog_path=args.tlog, signing=signing, world_url=args.world_url)
     except Exception as exc:  # config errors surface here (bad url, port in use)
         log.error("mock vehicle failed: %s", exc)
         return 1

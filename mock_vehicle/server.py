@@ -13,6 +13,7 @@ from mavlink_bridge import MavlinkPort, Message, TlogWriter
 from mavlink_bridge.signing import SigningConfig
 
 from .vehicle import MockVehicle, VehicleConfig
+from .world import WorldClient
 
 __all__ = ["run_vehicle"]
 
@@ -26,11 +27,15 @@ def run_vehicle(
     tlog_path: str | None = None,
     max_wait_s: float = 0.02,
     signing: SigningConfig | None = None,
+    world_url: str | None = None,
 ) -> MockVehicle:
     """Serve ``cfg`` on every url in ``urls`` until ``stop`` is set. Returns the vehicle.
-    With ``signing`` every packet sent is signed and only validly signed input is used."""
+    With ``signing`` every packet sent is signed and only validly signed input is used.
+    With ``world_url`` (``udp:127.0.0.1:P``, ``mock_vehicle.world``) the vehicle has a
+    proximity sensor and forwards what it senses as ADSB_VEHICLE (docs/proximity.md)."""
     tlog = TlogWriter(tlog_path) if tlog_path else None
     ports: list[MavlinkPort] = []
+    world: WorldClient | None = None
     try:
         for url in urls:
             ports.append(MavlinkPort.open(url, cfg.system_id, cfg.component_id, tlog, signing=signing))
@@ -47,6 +52,10 @@ def run_vehicle(
                 p.send(msg)  # type: ignore[union-attr]
 
         vehicle = MockVehicle(cfg, send, require_signed=signing is not None)
+        if world_url is not None:
+            world = WorldClient(world_url)
+            vehicle.attach_world(lambda t_ms, state: world.report(cfg.instance, t_ms, state))  # type: ignore[union-attr]
+            log.info("proximity sensor: world at %s:%d", *world.address)
         log.info(
             "instance %d at %s m, v %s m/s, %s clock",
             cfg.instance,
@@ -57,12 +66,17 @@ def run_vehicle(
         while not stop.is_set():
             wait_s = min(max(0.0, vehicle.next_deadline() - time.monotonic()), max_wait_s)
             try:
-                readable, _, _ = select.select(ports, [], [], wait_s)
+                readable, _, _ = select.select(ports + ([world] if world is not None else []), [], [], wait_s)
             except (OSError, ValueError):
                 if stop.is_set():
                     break
                 raise
             for p in readable:
+                if p is world:
+                    for a in world.receive():
+                        if a.vehicle_id == cfg.instance:
+                            vehicle.on_world_answer(a.time_boot_ms, a.ids, a.states)
+                    continue
                 for _ in range(256):  # drain what is queued, but keep ticking
                     received = p.recv(0.0)
                     if not received:
@@ -79,6 +93,8 @@ def run_vehicle(
             )
         return vehicle
     finally:
+        if world is not None:
+            world.close()
         for p in ports:
             p.close()
         if tlog is not None:

@@ -48,6 +48,7 @@ from mavlink_bridge import (
     HomePosition,
     LocalPositionNed,
     MavAutopilot,
+    NamedValueInt,
     MavCmd,
     MavFrame,
     MavLandedState,
@@ -75,8 +76,11 @@ from mavlink_bridge import (
 from mavlink_bridge import MSG_ID_BY_NAME
 from mavlink_bridge.ratelog import RejectLog
 
+from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME
+
 from .params import ParamTable
 from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
+from .proximity import traffic_reports
 
 __all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint", "SETPOINT_LIMITS", "SIGNED_COMMAND_MESSAGES"]
 
@@ -141,6 +145,7 @@ class VehicleConfig:
         }
     )
     lockstep_resend_hz: float = 5.0
+    traffic_rate_hz: float = 5.0     # proximity sensor (with a world): report/answer rate in real time, re-send rate in lockstep
 
     @property
     def system_id(self) -> int:
@@ -254,6 +259,12 @@ class MockVehicle:
         self._next_due = {k: self._t0 for k in self._intervals_s}
         self._next_resend = self._t0
         self.n_steps_failsafe = 0
+        # proximity sensor (docs/proximity.md): set by attach_world
+        self._world_report: Callable[[int, np.ndarray], None] | None = None
+        self._world_pending_ms: int | None = None   # lockstep: time reported, its sensed set not yet answered
+        self._world_reported_at = -math.inf
+        self._traffic: tuple[int, list[Message]] | None = None   # (time_boot_ms, ADSB_VEHICLE... + marker)
+        self._next_traffic = self._t0
 
     # ------------------------------------------------------------------ clocks
     def wall_s(self) -> float:
@@ -316,8 +327,9 @@ class MockVehicle:
             if sp.time_boot_ms == self.time_boot_ms():
                 self.setpoint = sp
                 self._lockstep_step()
-            else:
-                self._send(self._local_position(), port)  # idempotent retry answer
+            elif self._world_pending_ms is None:  # idempotent retry answer (none while the world has not answered)
+                self._send_traffic(port)
+                self._send(self._local_position(), port)
             return
         now = self.wall_s()
         if self._stream_start_wall is None or now - self._last_sp_wall > OFFBOARD_MIN_RATE_GAP_S:
@@ -534,12 +546,66 @@ class MockVehicle:
             self.vz_m_s = 0.0
 
     def _lockstep_step(self) -> None:
-        """Lockstep: one control step of dt_s with the setpoint just received, then telemetry."""
+        """Lockstep: one control step of dt_s with the setpoint just received, then telemetry.
+        With a world, the telemetry waits for the world's answer (``on_world_answer``)."""
         self._step(self._dt_ms / 1000.0)
         self.step_index += 1
         self._last_sp_sim_s = self.sim_time_s()
+        if self._world_report is not None:
+            self._report_to_world()
+            return
         for m in self._fast_telemetry():
             self._send(m, None)
+
+    # ------------------------------------------------------------------ proximity sensor (docs/proximity.md)
+    WORLD_RETRY_S = 0.5
+
+    def attach_world(self, report: Callable[[int, np.ndarray], None]) -> None:
+        """Give the vehicle a proximity sensor: ``report(time_boot_ms, state_f32 (4,))`` sends
+        its true state to the world; the world's answers come back through ``on_world_answer``."""
+        self._world_report = report
+        if self.cfg.lockstep:
+            self._report_to_world()
+
+    def _report_to_world(self) -> None:
+        t = self.time_boot_ms()
+        if self.cfg.lockstep:
+            self._world_pending_ms = t
+        self._world_reported_at = self._clock()
+        self._world_report(t, np.asarray(self.state, dtype=np.float32))  # type: ignore[misc]
+
+    def on_world_answer(self, time_boot_ms: int, ids: np.ndarray, states: np.ndarray) -> None:
+        """The vehicles sensed at ``time_boot_ms``: send them as ADSB_VEHICLE plus the marker
+        (lockstep: only the answer to the pending step, followed by that step's telemetry)."""
+        if self.cfg.lockstep and time_boot_ms != self._world_pending_ms:
+            return  # a duplicate or stale answer
+        msgs: list[Message] = list(traffic_reports(ids, states, time_boot_ms, (self.cfg.home_lat_deg, self.cfg.home_lon_deg),
+                                                   self.cfg.home_alt_amsl_m + self.cfg.altitude_m))
+        msgs.append(NamedValueInt(time_boot_ms & 0xFFFFFFFF, TRAFFIC_MARKER_NAME, len(msgs)))
+        self._traffic = (time_boot_ms, msgs)
+        self._send_traffic(None)
+        if self.cfg.lockstep:
+            self._world_pending_ms = None
+            for m in self._fast_telemetry():
+                self._send(m, None)
+
+    def _send_traffic(self, port: object | None) -> None:
+        if self._traffic is not None:
+            for m in self._traffic[1]:
+                self._send(m, port)
+
+    def _world_tick(self, now: float) -> None:
+        if self._world_report is None:
+            return
+        if self.cfg.lockstep:
+            if self._world_pending_ms is not None and now - self._world_reported_at > self.WORLD_RETRY_S:
+                self._report_to_world()  # no answer yet: the world answers duplicates again
+            elif self._world_pending_ms is None and self.cfg.traffic_rate_hz > 0 and now >= self._next_traffic:
+                self._next_traffic = now + 1.0 / self.cfg.traffic_rate_hz
+                self._send_traffic(None)  # re-send the current set (a controller may have missed it)
+        elif self.cfg.traffic_rate_hz > 0 and now >= self._next_traffic:
+            self._next_traffic = now + 1.0 / self.cfg.traffic_rate_hz
+            self._report_to_world()
 
     def tick(self) -> None:
         """Advance the clocks: real-time physics, failsafe, periodic telemetry."""
@@ -572,7 +638,8 @@ class MockVehicle:
                 continue  # in lockstep these follow the steps (plus the slow re-send below)
             self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
             self._send(self._telemetry(kind), None)
-        if lockstep_fast and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
+        self._world_tick(now)
+        if lockstep_fast and self._world_pending_ms is None and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
             self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
             for m in self._fast_telemetry():
                 self._send(m, None)
