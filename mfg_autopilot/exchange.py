@@ -384,6 +384,8 @@ class SwarmExchange:
         self._publisher = None
         try:
             session.close()
+        except Exception as exc:  # a close that times out must not mask why we are closing
+            log.warning("vehicle %d: zenoh session close failed: %s", self.vehicle_id, exc)
         finally:
             if self.malformed_counts:
                 log.warning("vehicle %d: dropped malformed state payloads: %s",
@@ -435,7 +437,9 @@ class SwarmExchange:
             if sample.kind == zenoh.SampleKind.PUT:
                 self._present.add(vid)
                 self._lost.discard(vid)
-            elif vid in self._present:
+            elif vid in self._present and vid != self.vehicle_id:
+                # (the own token is held until close; its DELETE seen when the client loses
+                # its router is not a departure of this vehicle)
                 self._present.discard(vid)
                 self._lost.add(vid)
                 callbacks = list(self._lost_callbacks)
