@@ -53,7 +53,11 @@ def build_parser() -> argparse.ArgumentParser:
     clock.add_argument("--lockstep", dest="lockstep", action="store_true", default=True,
                        help="simulated time advances one step per setpoint (default; reproduces `sim`)")
     clock.add_argument("--realtime", dest="lockstep", action="store_false", help="wall-clock time (dt = 1 s is 1 s)")
-    run.add_argument("--zenoh-router", action="store_true", help="run a Zenoh router; controllers join it in client mode")
+    zr = run.add_mutually_exclusive_group()
+    zr.add_argument("--zenoh-router", dest="zenoh_router", action="store_true", default=None,
+                    help="run a Zenoh router; controllers join it in client mode (default above 25 vehicles)")
+    zr.add_argument("--zenoh-peers", dest="zenoh_router", action="store_false",
+                    help="controllers form a Zenoh peer mesh on loopback (default up to 25 vehicles)")
     run.add_argument("--mavlink-base-port", type=int, default=None,
                      help="vehicle I uses UDP base+I (PX4 SITL: 14540); default: free ports picked by the OS")
     run.add_argument("--gcs", action="store_true", help="also stream each vehicle's GCS link to udp 127.0.0.1:14550 (QGroundControl, MAVProxy)")

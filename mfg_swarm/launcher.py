@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -38,6 +39,12 @@ from .sim import plant_params_for
 __all__ = ["RunConfig", "run_swarm", "LaunchError"]
 
 
+PEER_MESH_MAX_N = 25
+"""Above this many vehicles the launcher joins the controllers through a Zenoh router (client
+mode) instead of a full peer mesh: N = 81 peers on loopback (3,240 links) did not finish
+their t = 0 exchange within 120 s on a 2-core machine."""
+
+
 class LaunchError(RuntimeError):
     """The swarm could not be started or run; the message says what and how to fix it."""
 
@@ -52,7 +59,7 @@ class RunConfig:
     steps: int = 200
     range_m: float | None = None
     lockstep: bool = True
-    zenoh_router: bool = False
+    zenoh_router: bool | None = None          # None: peers up to PEER_MESH_MAX_N vehicles, a router beyond
     mavlink_base_port: int | None = None     # None: pick free ports; else base + I (PX4: 14540)
     zenoh_base_port: int | None = None
     gcs_url: str = "none"
@@ -64,17 +71,42 @@ class RunConfig:
     python: str = field(default_factory=lambda: sys.executable)
 
 
+def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200) -> tuple[list[int], list[int]]:
+    """Consecutive loopback ports, all free at once: n_udp UDP ports from b and n_tcp TCP ports
+    from b + n_udp. Chosen below Linux's ephemeral range (32768-60999), so that the source
+    ports the OS hands to other sockets (a mock's udpout, a Zenoh connection) cannot take
+    them between this check and the children binding them."""
+    rng = random.Random(os.getpid() ^ int(time.time() * 1e3))
+    span = n_udp + n_tcp
+    for _ in range(tries):
+        b = rng.randrange(lo, hi - span)
+        socks = []
+        try:
+            for i in range(n_udp):
+                socks.append(socket.socket(socket.AF_INET, socket.SOCK_DGRAM)); socks[-1].bind(("127.0.0.1", b + i))
+            for i in range(n_tcp):
+                socks.append(socket.socket(socket.AF_INET, socket.SOCK_STREAM)); socks[-1].bind(("127.0.0.1", b + n_udp + i))
+            return list(range(b, b + n_udp)), list(range(b + n_udp, b + span))
+        except OSError:
+            continue
+        finally:
+            for s_ in socks:
+                s_.close()
+    raise LaunchError(f"no block of {span} free loopback ports in {lo}..{hi}: give --mavlink-base-port")
+
+
 def _free_ports(kind: int, n: int) -> list[int]:
+    """n loopback ports of a kind, free a moment ago (the OS picks them: ephemeral range)."""
     socks = []
     try:
         for _ in range(n):
-            s = socket.socket(socket.AF_INET, kind)
-            s.bind(("127.0.0.1", 0))
-            socks.append(s)
-        return [s.getsockname()[1] for s in socks]
+            s_ = socket.socket(socket.AF_INET, kind)
+            s_.bind(("127.0.0.1", 0))
+            socks.append(s_)
+        return [s_.getsockname()[1] for s_ in socks]
     finally:
-        for s in socks:
-            s.close()
+        for s_ in socks:
+            s_.close()
 
 
 def _check_ports_free(kind: int, ports: list[int], what: str) -> None:
@@ -191,16 +223,18 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     mission = {"sites_m": sc.destination_m.tolist()}
     write_json_atomic(out / "mission.json", mission)
 
+    auto_mav, auto_z = _free_port_block(n, n + 1)
     if cfg.mavlink_base_port is None:
-        mav_ports = _free_ports(socket.SOCK_DGRAM, n)
+        mav_ports = auto_mav
     else:
         mav_ports = [cfg.mavlink_base_port + i for i in range(n)]
         _check_ports_free(socket.SOCK_DGRAM, mav_ports, "MAVLink onboard")
     if cfg.zenoh_base_port is None:
-        z_ports = _free_ports(socket.SOCK_STREAM, n + 1)
+        z_ports = auto_z
     else:
         z_ports = [cfg.zenoh_base_port + i for i in range(n + 1)]
         _check_ports_free(socket.SOCK_STREAM, z_ports, "Zenoh")
+    use_router = cfg.zenoh_router if cfg.zenoh_router is not None else n > PEER_MESH_MAX_N
 
     py = cfg.python
     wind = plant_params_for(preset, cfg.physics_dt_s).wind
@@ -222,7 +256,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     t_start = time.perf_counter()
     killed: list[str] = []
     try:
-        if cfg.zenoh_router:
+        if use_router:
             router.append(_Child("zenoh-router", [py, "-m", "mfg_autopilot.zenoh_router", "--zenoh-listen",
                                                   f"tcp/127.0.0.1:{z_ports[n]}"], out / "stderr" / "zenoh-router.log"))
         if world_port is not None:
@@ -255,7 +289,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                 argv += ["--range-m", repr(float(cfg.range_m))]
             if cfg.lockstep:
                 argv.append("--lockstep")
-            if cfg.zenoh_router:
+            if use_router:
                 argv += ["--zenoh-mode", "client", "--zenoh-connect", f"tcp/127.0.0.1:{z_ports[n]}"]
             else:
                 argv += ["--zenoh-listen", f"tcp/127.0.0.1:{z_ports[i]}"]
