@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
     p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")
     p.add_argument("--tlog", default=None, help="MAVLink .tlog of this link")
+    p.add_argument("--mavlink-key", default=None, metavar="FILE",
+                   help="MAVLink 2 signing key file (64 hex characters, mode 600; docs/security.md): sign every "
+                        "packet and accept only validly signed ones from the vehicle")
     p.add_argument("--state-dir", default=None, help="checkpoint folder: a restarted controller resumes from it "
                                                      "without a new swarm exchange (docs/controller_log.md)")
     p.add_argument("--vehicle-timeout-s", type=float, default=30.0, help="wait for the vehicle's heartbeat and position")
@@ -75,7 +78,7 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         steps=args.steps, hold_on_arrival=hold, log_path=args.log, tlog_path=args.tlog, zenoh=ZenohSettings.from_args(args),
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
         gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
-        vehicle_lost_s=args.vehicle_lost_s)
+        vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mavlink_bridge import BridgeError, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink
+from mavlink_bridge import BridgeError, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink, load_signing_key
 from mavlink_bridge.adsb import adsb_states
 
 from .controller import Neighbours, Observation, make_controller
@@ -82,6 +82,7 @@ class AutopilotConfig:
     setpoint_rate_hz: float = 20.0
     vehicle_lost_s: float = 3.0               # heartbeat silence after which the vehicle is lost
     state_dir: str | None = None              # checkpoints for a restart without a new exchange
+    mavlink_key_file: str | None = None       # MAVLink 2 signing key (docs/security.md)
     traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
     traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
 
@@ -462,8 +463,9 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     link = None
     reason = "error"
     try:
+        key = None if cfg.mavlink_key_file is None else load_signing_key(cfg.mavlink_key_file)
         link = VehicleLink.open(cfg.connect, target_system=cfg.system_id, target_component=1,
-                                source_system=cfg.system_id, tlog_path=cfg.tlog_path)
+                                source_system=cfg.system_id, tlog_path=cfg.tlog_path, signing_key=key)
         link.wait_heartbeat(cfg.vehicle_timeout_s)
         clog.event("vehicle_found", system_id=cfg.system_id)
         p0 = link.wait_local_position(None, cfg.vehicle_timeout_s)
@@ -484,6 +486,10 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     except (BridgeError, AutopilotError, TimeoutError, ValueError) as exc:
         clog.event("error", error=f"{type(exc).__name__}: {exc}")
         log.error("%s: %s", type(exc).__name__, exc)
+        return 1
+    except Exception as exc:  # a bug: say so loudly, still command HOLD on the way out
+        clog.event("error", error=f"internal error {type(exc).__name__}: {exc}")
+        log.exception("internal error")
         return 1
     finally:
         if link is not None:

@@ -32,7 +32,7 @@ from mfg_autopilot.params import preset_by_name
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_vehicle_tlog, realtime_grid
-from .results import Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
+from .results import METRIC_KEYS, Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
 from .scenarios import Scenario
 from .sim import plant_params_for
 
@@ -68,6 +68,7 @@ class RunConfig:
     startup_timeout_s: float = 120.0
     progress: bool | None = None
     extra_controller_args: tuple[str, ...] = ()
+    mavlink_key_file: str | None = None       # MAVLink 2 signing between every controller and its vehicle
     python: str = field(default_factory=lambda: sys.executable)
 
 
@@ -277,6 +278,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
             if world_port is not None:
                 argv += ["--world-url", f"udp:127.0.0.1:{world_port}",
                          "--home-lat", repr(DEFAULT_HOME_DEG[0]), "--home-lon", repr(DEFAULT_HOME_DEG[1])]
+            if cfg.mavlink_key_file:
+                argv += ["--signing-key", str(cfg.mavlink_key_file)]
             vehicles.append(_Child(f"vehicle{i}", argv, out / "stderr" / f"vehicle{i}.log"))
         ctrl_logs = [out / "controllers" / f"controller{i}.jsonl" for i in range(n)]
         for i in range(n):
@@ -295,6 +298,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                 argv += ["--zenoh-listen", f"tcp/127.0.0.1:{z_ports[i]}"]
                 if i > 0:
                     argv += ["--zenoh-connect", f"tcp/127.0.0.1:{z_ports[0]}"]
+            if cfg.mavlink_key_file:
+                argv += ["--mavlink-key", str(cfg.mavlink_key_file)]
             argv += list(cfg.extra_controller_args)
             controllers.append(_Child(f"controller{i}", argv, out / "stderr" / f"controller{i}.log"))
         children = router + world + vehicles + controllers
@@ -373,6 +378,16 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     # steps the swarm actually flew: the longest prefix with every vehicle's state known
     known = ~np.isnan(states[:, :, 0]).any(axis=1)
     flown = int(np.argmin(known)) if not known.all() else T + 1
+    if flown == 0:
+        # not one instant with every vehicle's state: nothing flown to measure
+        empty = {k: None for k in METRIC_KEYS}
+        empty.update(n=n, mode=cfg.mode, seed=cfg.seed, steps=0, wall_s=wall_s, steps_requested=T,
+                     scenario=cfg.scenario.name, preset=preset.name, error="no complete telemetry recorded")
+        z = np.zeros((1, n, 2))
+        return Trajectories(dt_s=dt, pos_m=np.full((1, n, 2), np.nan), vel_m_s=z, acc_m_s2=np.zeros((0, n, 2)),
+                            dest_m=np.zeros((n, 2)), comm_states=np.zeros((1, n), dtype=np.int64),
+                            grad_evals=np.zeros((0, n), dtype=np.int64), mf_evals=np.zeros((0, n), dtype=np.int64),
+                            reg_active=np.zeros((0, n), dtype=bool)), empty
     T_eff = max(flown - 1, 0)
     states, acc = states[: T_eff + 1], np.nan_to_num(acc[:T_eff])
     comm = np.zeros((T_eff + 1, n), dtype=np.int64)

@@ -115,3 +115,20 @@ def test_ctrl_c_stops_the_whole_swarm_and_leaves_partial_readable_results(tmp_pa
     for i in range(4):
         recs = [json.loads(l) for l in (out / "controllers" / f"controller{i}.jsonl").read_text().splitlines()]
         assert any(r.get("what") == "hold" for r in recs), f"controller {i} did not command HOLD on the way out"
+
+
+def test_signed_swarm_flies_and_every_setpoint_is_signed(tmp_path):
+    from mavlink_bridge import SetPositionTargetLocalNed, read_tlog, write_signing_key
+
+    key = tmp_path / "swarm.key"
+    write_signing_key(key)
+    proc = _run(tmp_path / "signed", "--n", "2", "--mode", "mfg", "--steps", "10", "--preset", "paper", "--mavlink-key", str(key))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "signed" / "metrics.json").read_text())
+    assert m["steps"] == 10 and not m["partial"]
+    for i in range(2):
+        sps = [r for _, r in read_tlog(tmp_path / "signed" / "vehicles" / f"vehicle{i}.tlog") if isinstance(r.msg, SetPositionTargetLocalNed)]
+        assert sps and all(r.raw[0] == 0xFD and r.raw[2] & 0x01 for r in sps), "MAVLink 2 with the signed flag"
+    os.chmod(key, 0o644)
+    proc = _run(tmp_path / "loose", "--n", "2", "--steps", "2", "--mavlink-key", str(key))
+    assert proc.returncode == 2 and "chmod 600" in proc.stderr
