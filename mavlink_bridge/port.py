@@ -30,6 +30,8 @@ class MavlinkPort:
     ) -> None:
         self.transport = transport
         self.codec = MavCodec(source_system, source_component, signing)
+        if signing is not None and hasattr(transport, "follow_sender"):
+            transport.follow_sender = False  # only a validly signed datagram may become the peer
         self.tlog = tlog
         self.name = name or str(getattr(transport, "endpoint", "port"))
         self._tx_lock = threading.Lock()
@@ -86,6 +88,10 @@ class MavlinkPort:
             return []
         self.n_datagrams += 1
         out = self.codec.decode_datagram(data) if self.transport.is_datagram else self.codec.decode(data)
+        if self.codec.signing is not None and any(r.signature == "valid" for r in out):
+            accept = getattr(self.transport, "accept_sender", None)
+            if accept is not None:
+                accept()
         for r in out:
             if isinstance(r.msg, BadData):
                 self.n_bad += 1

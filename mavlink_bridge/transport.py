@@ -96,6 +96,11 @@ class UdpTransport(Transport):
 
     def __init__(self, endpoint: Endpoint) -> None:
         self.endpoint = endpoint
+        self.follow_sender = True
+        """udpin: answer whoever sent the last datagram. A signing port turns this off and
+        calls ``accept_sender`` only for datagrams with a valid signature, so an intruder's
+        datagram cannot divert the replies (docs/security.md)."""
+        self.last_sender: tuple[str, int] | None = None
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         if endpoint.scheme == "udpin":
@@ -135,9 +140,15 @@ class UdpTransport(Transport):
                 if timeout_s <= 0:
                     return None
                 continue
-            if self.endpoint.scheme == "udpin":
+            self.last_sender = addr
+            if self.endpoint.scheme == "udpin" and self.follow_sender:
                 self.peer = addr
             return data
+
+    def accept_sender(self) -> None:
+        """udpin: answer the sender of the last datagram from now on."""
+        if self.endpoint.scheme == "udpin" and self.last_sender is not None:
+            self.peer = self.last_sender
 
     def fileno(self) -> int:
         return self._sock.fileno()

@@ -266,3 +266,39 @@ def test_mock_vehicle_refuses_a_missing_or_loose_key_file_with_the_fix(tmp_path)
             mock_vehicle_cmd(9, "--signing-key", str(path)), cwd=REPO, capture_output=True, text=True, timeout=30
         )
         assert out.returncode == 2 and needle in out.stderr and str(path) in out.stderr, out.stderr
+
+
+def test_a_signing_listening_link_answers_only_validly_signed_senders():
+    """``udpin`` answers the last sender; with signing on, only a sender of a validly signed
+    packet becomes that peer, so an intruder's datagrams cannot divert the controller's
+    commands and setpoints away from the vehicle."""
+    from _net import free_udp_port
+    from mavlink_bridge import SigningConfig
+
+    key = bytes(range(32))
+    port = free_udp_port()
+    with VehicleLink.open(f"udpin:127.0.0.1:{port}", target_system=1, signing_key=key, heartbeat_rate_hz=20) as link:
+        vehicle = MavlinkPort.open(f"udpout:127.0.0.1:{port}", 1, 1, signing=SigningConfig(key))
+        intruder = MavlinkPort.open(f"udpout:127.0.0.1:{port}", 1, 1)
+        wrong = MavlinkPort.open(f"udpout:127.0.0.1:{port}", 1, 1, signing=SigningConfig(bytes(32)))
+        try:
+            hb = Heartbeat(2, 12, 0x81, 0, 4)
+            vehicle.send(hb)
+            link.wait_heartbeat(timeout_s=5.0)
+            vehicle_addr = vehicle.transport.local_address
+            assert wait_until(lambda: link.port.transport.peer == vehicle_addr, 5.0, "peer = the vehicle")
+            for _ in range(50):
+                intruder.send(hb)
+                wrong.send(hb)
+                intruder.send_raw(b"\xfd garbage")
+            time.sleep(0.3)
+            assert link.port.transport.peer == vehicle_addr
+            got = []
+            deadline = time.monotonic() + 3.0
+            while not got and time.monotonic() < deadline:
+                got = [r for r in vehicle.recv(0.2) if r.signed_ok and isinstance(r.msg, Heartbeat)]
+            assert got, "the link's signed heartbeats still reach the vehicle"
+            assert intruder.recv(0.3) == [] and wrong.recv(0.1) == []
+        finally:
+            for p in (vehicle, intruder, wrong):
+                p.close()
