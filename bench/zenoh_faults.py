@@ -316,16 +316,18 @@ def _free_udp_port() -> int:
 
 def _loss_stats(vehicles: list[TimedProc], inits: list[dict], deadline_s: float) -> dict:
     n = len(vehicles)
-    heard, waited, waits, per_vehicle = [], 0, [], []
+    heard, waited, waits, per_vehicle, present = [], 0, [], [], []
     for v in vehicles:
         evs = [ev for _, ev in v.step_events()]
         per_vehicle.append(round(statistics.mean(len(ev["neighbours"]) for ev in evs), 3))
         for ev in evs:
             heard.append(len(ev["neighbours"]))
+            present.append(len(ev["present"]) - 1)
             waits.append(ev["wait_s"])
             waited += ev["wait_s"] >= 0.9 * deadline_s
     return {"init_received": [ev["received"] for ev in inits],
             "mean_heard": statistics.mean(heard), "max_heard": n - 1,
+            "mean_present_others": statistics.mean(present),
             "mean_heard_by_vehicle": per_vehicle,
             "full_share": sum(x == n - 1 for x in heard) / len(heard),
             "deadline_share": waited / len(heard),
@@ -422,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             results["loss"].append(res)
             print(f"loss {loss:4.0f} % run {r} ({res['link']}): heard {res['mean_heard']:.2f}/3 "
-                  f"per step (by vehicle {res['mean_heard_by_vehicle']}), all 3 in "
+                  f"per step (by vehicle {res['mean_heard_by_vehicle']}; others present "
+                  f"{res['mean_present_others']:.2f}), all 3 in "
                   f"{100 * res['full_share']:.0f} % of steps, deadline waits in "
                   f"{100 * res['deadline_share']:.0f} % of steps, wait mean "
                   f"{1000 * res['mean_wait_s']:.0f} ms max {1000 * res['max_wait_s']:.0f} ms, "

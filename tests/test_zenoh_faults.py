@@ -112,6 +112,7 @@ def test_restarted_vehicle_gets_the_t0_states_from_the_swarm(swarm_name):
                                          connect=[ep(port)]), "veh2-late")
         procs.append(late)
         _, init, _ = late.wait_event("init", 30)
+        print(f"\nlate joiner: t = 0 exchange took {init['elapsed_s']:.3f} s")
         assert {k: v[0] for k, v in init["states"].items()} == {"0": 0.0, "1": 10.0, "2": 99.0}
         assert init["received"] == 2
         assert init["elapsed_s"] < 5.0
