@@ -228,25 +228,26 @@ class FrameFuzzer:
 
 
 # ------------------------------------------------------------------ drivers
-def _sync_request(tag: int) -> bytes:
+def _sync_request(tag: int, signing=None) -> bytes:
     """REQUEST_MESSAGE(AUTOPILOT_VERSION) from (SYNC_SYSTEM, tag): the vehicle answers it
     with a COMMAND_ACK addressed to (SYNC_SYSTEM, tag) once it has read every datagram
     sent before it (one socket, one reader, in order)."""
-    return MavCodec(SYNC_SYSTEM, tag).encode(CommandLong(0, 0, MavCmd.REQUEST_MESSAGE, (148.0,) + (0.0,) * 6))
+    return MavCodec(SYNC_SYSTEM, tag, signing).encode(CommandLong(0, 0, MavCmd.REQUEST_MESSAGE, (148.0,) + (0.0,) * 6))
 
 
 def fuzz_mock(vehicle_listen_port: int, frames: int, seed: int = 0, chunk: int = 400, sync_timeout_s: float = 10.0,
-              sock: socket.socket | None = None) -> dict:  # fmt: skip
+              sock: socket.socket | None = None, signing=None) -> dict:  # fmt: skip
     """Fuzz the mock vehicle whose onboard link sends to 127.0.0.1:``vehicle_listen_port``
     (this function binds that port, learns the vehicle's address from its telemetry, then
     sends ``frames`` datagrams in chunks, each followed by a sync request it waits for).
-    Returns a report dict."""
+    ``signing``: the vehicle's SigningConfig, used for the sync requests only (the fuzz
+    frames themselves are unsigned or carry random signatures). Returns a report dict."""
     own = sock is None
     if own:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
         sock.bind(("127.0.0.1", vehicle_listen_port))
-    rx = MavCodec(SYNC_SYSTEM, 0)
+    rx = MavCodec(SYNC_SYSTEM, 0, signing)
     sock.settimeout(sync_timeout_s)
     try:
         _, vehicle = sock.recvfrom(65535)  # its first telemetry datagram: the address to attack
@@ -259,7 +260,7 @@ def fuzz_mock(vehicle_listen_port: int, frames: int, seed: int = 0, chunk: int =
                 sock.sendto(fz.frame()[1], vehicle)
                 sent += 1
             tag = tag % 250 + 1
-            sock.sendto(_sync_request(tag), vehicle)
+            sock.sendto(_sync_request(tag, signing), vehicle)
             deadline = time.monotonic() + sync_timeout_s
             ok = False
             while not ok and time.monotonic() < deadline:
@@ -269,7 +270,7 @@ def fuzz_mock(vehicle_listen_port: int, frames: int, seed: int = 0, chunk: int =
                     break
                 for r in rx.decode_datagram(data):
                     m = r.msg
-                    if isinstance(m, CommandAck) and m.command == MavCmd.REQUEST_MESSAGE and (m.target_system, m.target_component) == (SYNC_SYSTEM, tag):
+                    if (signing is None or r.signed_ok) and isinstance(m, CommandAck) and m.command == MavCmd.REQUEST_MESSAGE and (m.target_system, m.target_component) == (SYNC_SYSTEM, tag):
                         ok = True
             syncs += ok
             sync_timeouts += not ok

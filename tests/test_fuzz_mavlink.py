@@ -29,12 +29,16 @@ from hypothesis import strategies as st
 from _net import free_udp_port, running_mock_vehicle
 from fuzz_mavlink import KINDS, FrameFuzzer, fuzz_link, fuzz_mock
 from mavlink_bridge import (
+    PX4_HOLD,
     PX4_OFFBOARD,
     Heartbeat,
     LocalPositionNed,
     MavlinkPort,
     SetPositionTargetLocalNed,
+    SigningConfig,
     VehicleLink,
+    load_signing_key,
+    write_signing_key,
 )
 from mavlink_bridge.codec import MAVLINK_MSG_ID, MavCodec
 from mock_vehicle.vehicle import SETPOINT_LIMITS, MockVehicle, VehicleConfig, check_setpoint
@@ -70,17 +74,21 @@ def _finite_lp(lp: LocalPositionNed) -> bool:
     return all(map(math.isfinite, (lp.x_m, lp.y_m, lp.z_m, lp.vx_m_s, lp.vy_m_s, lp.vz_m_s)))
 
 
-def run_mock_fuzz(frames: int, seed: int, log_dir: Path) -> dict:
-    """Fuzz a mock-vehicle process with ``frames`` datagrams and check it afterwards."""
-    with running_mock_vehicle("--initial-pos-m", "5,-5", log_dir=log_dir) as mock:
-        report = fuzz_mock(mock.onboard_port, frames, seed=seed)
+def run_mock_fuzz(frames: int, seed: int, log_dir: Path, key_path: Path | None = None) -> dict:
+    """Fuzz a mock-vehicle process with ``frames`` datagrams and check it afterwards
+    (``key_path``: the vehicle runs with ``--signing-key``; the checks use a keyed link)."""
+    key = None if key_path is None else load_signing_key(key_path)
+    extra = () if key_path is None else ("--signing-key", str(key_path))
+    with running_mock_vehicle("--initial-pos-m", "5,-5", *extra, log_dir=log_dir) as mock:
+        report = fuzz_mock(mock.onboard_port, frames, seed=seed, signing=None if key is None else SigningConfig(key))
         assert mock.proc.alive(), mock.log_text()[-3000:]
-        with VehicleLink.open(mock.onboard_url, target_system=1) as link:
+        with VehicleLink.open(mock.onboard_url, target_system=1, signing_key=key) as link:
             # the fuzz may have switched telemetry off (SET_MESSAGE_INTERVAL -1): restore it
             for name in ("HEARTBEAT", "LOCAL_POSITION_NED"):
                 link.set_message_interval(MAVLINK_MSG_ID[name], 0, timeout_s=10.0)
             t = time.monotonic()
             hb = link.wait_heartbeat(timeout_s=5.0, newer_than_monotonic_s=t)
+            report["armed_before_legit_arm"] = hb.armed
             lp = link.wait_local_position(None, timeout_s=5.0)
             assert _finite_lp(lp), lp
             link.set_param("SIM_ARM_DENY", 0.0, timeout_s=10.0)  # the fuzz may have set it
@@ -161,6 +169,26 @@ def test_fuzz_mock_vehicle_process_with_100k_frames(tmp_path, capsys):
     with capsys.disabled():
         print(f"\nmock-vehicle fuzz: {report}")
     assert report["frames"] == CI_FRAMES and all(report["kinds"][k] > 0 for k in KINDS)
+
+
+@pytest.mark.e2e
+def test_fuzz_signing_mock_vehicle_with_30k_frames(tmp_path, capsys):
+    """With --signing-key, none of the fuzz frames (unsigned, or with random signature
+    blocks) gets past the signature check: the vehicle stays disarmed in HOLD, parameters and
+    telemetry rates untouched, and it still flies for the keyed link."""
+    key_path = tmp_path / "k.key"
+    write_signing_key(key_path)
+    t0 = time.monotonic()
+    report = run_mock_fuzz(30_000, seed=4, log_dir=tmp_path, key_path=key_path)
+    report["test_wall_s"] = round(time.monotonic() - t0, 1)
+    with capsys.disabled():
+        print(f"\nsigning mock-vehicle fuzz: {report}")
+    assert report["after_heartbeat_mode"] == PX4_HOLD.name and report["armed_before_legit_arm"] is False
+    kinds = set(report["rejection_log_lines"])
+    assert {"unsigned COMMAND_LONG", "unsigned SET_POSITION_TARGET_LOCAL_NED", "unsigned other message", "bad packet"} <= kinds
+    assert any(k.startswith("bad signature") for k in kinds)
+    handler_kinds = {"setpoint wrong target system", "unsupported command", "PARAM_SET refused", "setpoint non-finite field"}
+    assert not (kinds & handler_kinds), "a fuzz frame reached the handlers past the signature check"
 
 
 @pytest.mark.e2e
