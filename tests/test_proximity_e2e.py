@@ -84,3 +84,22 @@ def test_lockstep_default_preset_with_proximity_sensor_equals_the_simulator(tmp_
     assert (m_s["backstop_activations"] > 0) == expect_backstop
     for k in ("collision_pairs", "comm_states_per_uav"):
         assert m_p[k] == m_s[k], k
+
+
+def test_realtime_swarm_forwards_traffic_to_every_controller(tmp_path):
+    """Real time: the world answers from the latest truth; every controller's steps see the
+    others (the paper grid lies within the 10 m sensor range)."""
+    n, out = 4, tmp_path / "rt"
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "run", "--out", str(out), "--no-progress", "--no-plot",
+                           "--realtime", "--preset", "default", "--scenario", "paper", "--n", str(n), "--mode", "mfg",
+                           "--steps", "6"], capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    left = [p for p in psutil.Process().children(recursive=True)
+            if p.pid not in before and p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert not left, f"processes left behind: {[p.cmdline()[:4] for p in left]}"
+    for i in range(n):
+        recs = [json.loads(line) for line in (out / "controllers" / f"controller{i}.jsonl").read_text().splitlines()]
+        steps = [r for r in recs if r["type"] == "step"]
+        assert len(steps) == 6
+        assert all(r["sensed_ids"] == [j for j in range(n) if j != i] for r in steps), i
