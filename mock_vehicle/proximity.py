@@ -51,7 +51,9 @@ def sensed_rows(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     owner = np.concatenate([pairs[:, 0], pairs[:, 1]])
     other = np.concatenate([pairs[:, 1], pairs[:, 0]])
-    order = np.lexsort((other, owner))
+    if owner.size == 0:
+        return owner, other
+    order = np.argsort(owner * (int(other.max()) + 1) + other)   # keys are distinct: any sort gives one order
     return owner[order], other[order]
 
 

@@ -323,3 +323,56 @@ def test_link_collects_tagged_sets_whatever_the_order_and_times_out_on_an_incomp
     finally:
         veh.close()
         link.close()
+
+
+# ---------------------------------------------------------------- the runtime's use of it
+class _StubLink:
+    """What Autopilot._sensed needs of a VehicleLink."""
+
+    def __init__(self, sets: dict[int, list], sensor: bool = True) -> None:
+        self.sets, self.sensor, self.asked = sets, sensor, []
+
+    def wait_traffic_sensor(self, timeout_s):
+        return self.sensor
+
+    def wait_for(self, msg_type, predicate, timeout_s):
+        return HomePosition(*DEFAULT_HOME_DEG, 488.0) if msg_type is HomePosition else None
+
+    def sensed_traffic(self, t_ms, timeout_s):
+        self.asked.append(t_ms)
+        if t_ms not in self.sets:
+            raise TelemetryTimeout(f"traffic set at {t_ms} ms", 1, timeout_s)
+        return self.sets[t_ms]
+
+    def latest_traffic(self, max_age_s):
+        return max(self.sets.items()) if self.sets else None
+
+
+def _autopilot(link, lockstep=True, preset="default"):
+    from mfg_autopilot.runtime import Autopilot, AutopilotConfig, ControllerLog
+
+    cfg = AutopilotConfig(instance=0, connect="udpin:127.0.0.1:1", mode="mfg", preset=preset, n=3, lockstep=lockstep,
+                          sites_m=((0.0, 0.0), (1.0, 0.0), (2.0, 0.0)), step_timeout_s=0.1)
+    return Autopilot(cfg, link, None, ControllerLog(None), threading.Event())
+
+
+def test_runtime_fills_observation_sensed_from_the_steps_traffic_set():
+    from mfg_autopilot.runtime import AutopilotError
+
+    states = _random_states(np.random.default_rng(9), 3)[1:]
+    link = _StubLink({1500: traffic_reports(np.array([2, 1]), states, 1500)})
+    ap = _autopilot(link)
+    obs = ap._observe(3, np.zeros(4), 1.5)
+    assert link.asked == [1500]
+    assert obs.sensed.ids.tolist() == [1, 2] and obs.sensed.owner.tolist() == [0, 0]
+    assert np.array_equal(obs.sensed.states, quantise_sensed_states(states[::-1]))
+    with pytest.raises(AutopilotError, match="no complete traffic set for t = 2000 ms"):
+        ap._observe(4, np.zeros(4), 2.0)
+    # real time: the newest set
+    assert _autopilot(link, lockstep=False)._observe(3, np.zeros(4), 7.3).sensed.ids.tolist() == [1, 2]
+    # a vehicle without a sensor: no sensed set, never waited for again
+    ap = _autopilot(_StubLink({}, sensor=False))
+    assert ap._observe(0, np.zeros(4), 0.0).sensed is None and ap._observe(1, np.zeros(4), 0.5).sensed is None
+    # a controller without a sensor range (paper preset) never asks
+    link = _StubLink({})
+    assert _autopilot(link, preset="paper")._observe(0, np.zeros(4), 0.0).sensed is None and link.asked == []
