@@ -15,7 +15,7 @@ valid signature.
 
 Key file (``load_signing_key``): exactly 64 hexadecimal characters (the 32-byte secret;
 surrounding whitespace and one trailing newline are allowed), owner-only permissions
-(no group/other bits, e.g. ``chmod 600``). ``write_signing_key`` creates one.
+(no group/other bits, e.g. ``chmod 600``). ``write_signing_key`` (or ``python -m mavlink_bridge.keytool --generate FILE``) creates one.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def load_signing_key(path: str | os.PathLike) -> bytes:
     except FileNotFoundError:
         raise SigningKeyError(
             f"MAVLink signing key file {p} does not exist; create one with "
-            f"`python -m mavlink_bridge.signing --generate {p}` (64 hex characters, mode 600)"
+            f"`python -m mavlink_bridge.keytool --generate {p}` (64 hex characters, mode 600)"
         ) from None
     except OSError as exc:
         raise SigningKeyError(f"cannot read MAVLink signing key file {p}: {exc}") from None
@@ -179,30 +179,3 @@ class SignatureVerifier:
             return SIG_REPLAY
         self._streams[stream] = timestamp
         return SIG_VALID
-
-
-def _main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m mavlink_bridge.signing", description="MAVLink signing key files")
-    ap.add_argument("--generate", metavar="FILE", help="create FILE (mode 600) with a new random key")
-    ap.add_argument("--check", metavar="FILE", help="check that FILE is a usable key file")
-    args = ap.parse_args(argv)
-    try:
-        if args.generate:
-            write_signing_key(args.generate)
-            print(f"wrote a new MAVLink signing key to {args.generate} (mode 600)")
-        if args.check:
-            load_signing_key(args.check)
-            print(f"{args.check}: OK")
-    except (SigningKeyError, OSError) as exc:
-        print(f"error: {exc}")
-        return 1
-    if not (args.generate or args.check):
-        ap.print_help()
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(_main())
