@@ -229,3 +229,77 @@ def test_forged_states_from_unauthorised_user_never_reach_the_exchange(acl_route
             forger.close()
         for ex in exs:
             ex.close()
+
+
+def _load_make_acl():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("make_acl", EXAMPLES / "make_acl.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_per_vehicle_acl_a_vehicle_cannot_speak_for_another(tmp_path):
+    """examples/zenoh_acl/make_acl.py (one user per vehicle): three vehicles complete the t = 0
+    exchange and 2 gossip steps while a session logged in with vehicle 1's credentials floods
+    forged states for vehicles 0 and 2 and holds their tokens: none of it arrives. Control: the
+    same session's put on vehicle 1's own key does arrive."""
+    n, swarm = 3, "pv"
+    port = free_tcp_port()
+    paths = _load_make_acl().main(swarm, n, ep(port), ep(port), tmp_path / "acl")
+    for name in ("credentials", "router", "vehicle0", "observer"):
+        assert paths[name].stat().st_mode & 0o077 == 0, name
+    router = Proc(router_argv([ep(port)]) + ["--zenoh-config", str(paths["router"])], "router")
+    exs = [SwarmExchange(settings(port, paths[f"vehicle{i}"]), swarm, i, n) for i in range(n)]
+    xs = [0.0, 1.0, 2.0]
+    forger = None
+    stop = threading.Event()
+    puts = [0]
+    try:
+        assert router.next_line(20) == "ready", router.stderr_lines
+        for ex in exs:
+            ex.open()
+        forger = zenoh.open(raw_config(port, paths["vehicle1"]))
+        tokens = [forger.liveliness().declare_token(alive_key(swarm, v)) for v in (0, 2)]
+
+        def flood():
+            while not stop.is_set():
+                for step in range(3):
+                    for vid in (0, 2):
+                        forger.put(state_key(swarm, vid), StateMsg(
+                            vid, step, float(step), (FORGED_X_M, 0.0, 0.0, 0.0)).encode())
+                        puts[0] += 1
+                stop.wait(0.01)
+
+        t = threading.Thread(target=flood, daemon=True)
+        t.start()
+        wait_until(lambda: puts[0] > 300, 10, "the forger to flood")
+
+        def fly(i: int):
+            ex = exs[i]
+            init = ex.initial_exchange([xs[i], 0.0, 0.0, 0.0], timeout_s=15)
+            got = [ex.gossip(s, float(s), [xs[i], 0.0, 0.0, 0.0], 100.0, timeout_s=5)
+                   for s in (1, 2)]
+            return init, got
+
+        with ThreadPoolExecutor(n) as pool:
+            results = [f.result(timeout=60) for f in [pool.submit(fly, i) for i in range(n)]]
+        for i, (init, got) in enumerate(results):
+            assert {k: m.state[0] for k, m in init.items()} == dict(enumerate(xs))
+            for per_step in got:
+                assert [(m.vehicle_id, m.state[0]) for m in per_step] == \
+                    [(j, xs[j]) for j in range(n) if j != i]
+            assert exs[i].states_received_by_step == {0: 2, 1: 2, 2: 2}
+        # control: vehicle 1's credentials may put on vehicle 1's key
+        heard0 = exs[0].states_heard_total
+        wait_until(lambda: (forger.put(state_key(swarm, 1), StateMsg(
+            1, 99, 99.0, (FORGED_X_M, 0.0, 0.0, 0.0)).encode()),
+            exs[0].states_heard_total > heard0)[1], 5, "vehicle 1's own put to arrive")
+        del tokens
+    finally:
+        stop.set()
+        if forger is not None:
+            forger.close()
+        for ex in exs:
+            ex.close()
+        stop_all([router])
