@@ -31,6 +31,7 @@ ABLATIONS = {
     "value model frozen at w_H(0) (no HJB learning)": {"tracking.learn_hjb": False},
     "HJB learning, FPK model off (uniform phi_G weights)": {"tracking.learn_fpk": False},
     "no backstop": {"backstop.enabled": False},
+    "plan without interaction and no backstop": {"use_repulsion": False, "backstop.enabled": False},
 }
 
 

@@ -14,9 +14,10 @@ open the closest approach to the target clearance (> trigger) by tau*:
 one - leaves the other with half per step, and the next step's prediction asks again).
 
 (n_hat = u rotated +90 deg for an exact head-on approach: both pass 'on the right').
-Contributions are summed and capped at a_max, and the result gets priority over the
-nominal command: a = delta_a + sat(a_nom, a_max - |delta_a|). With nothing predicted
-below the trigger the command is returned unchanged (inactive otherwise).
+Contributions are summed and capped at a_max; the result is a half-plane constraint on the
+command (:func:`apply_backstop`: the nearest command to the nominal one whose component
+along delta_a is at least |delta_a|). With nothing predicted below the trigger the command
+is returned unchanged (inactive otherwise).
 
 Shapes: own (n, 4); sensed states (m, 4) owned by bank rows owner (m,).
 """
@@ -58,8 +59,17 @@ def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, 
 
 
 def apply_backstop(a_nom: np.ndarray, delta_a: np.ndarray, a_max_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Priority combination; returns (command (n, 2), active (n,) bool)."""
-    active = np.linalg.norm(delta_a, axis=1) > 0
-    room = np.maximum(a_max_m_s2 - np.linalg.norm(delta_a, axis=1), 0.0)
-    a = np.where(active[:, None], delta_a + cap_norm(a_nom, room), a_nom)
+    """Minimal intervention as a half-plane constraint (a one-constraint safety filter):
+    with n = delta_a / |delta_a| and a_req = |delta_a|, the command is the point nearest to
+    a_nom with n.a >= a_req - the nominal keeps everything that does not push against the
+    backstop, and is unchanged if it already satisfies it. Under the limit a_max the normal
+    component is kept and the tangential one shortened. Returns (command (n, 2), active (n,))."""
+    a_req = np.linalg.norm(delta_a, axis=1)
+    active = a_req > 0
+    n_hat = delta_a / np.maximum(a_req, 1e-300)[:, None]
+    a_n_nom = np.einsum("nd,nd->n", a_nom, n_hat)
+    a_n = np.minimum(np.maximum(a_req, a_n_nom), a_max_m_s2)
+    tang = a_nom - a_n_nom[:, None] * n_hat
+    tang = cap_norm(tang, np.sqrt(np.maximum(a_max_m_s2 ** 2 - a_n ** 2, 0.0)))
+    a = np.where(active[:, None], a_n[:, None] * n_hat + tang, a_nom)
     return cap_norm(a, a_max_m_s2), active

@@ -49,8 +49,10 @@ class RepulsionParams:
     horizon_s: float = 3.0
     gain_m_s2: float = 1.0          # cap of one pair's push
     tau_min_s: float = 0.5          # urgency floor of the push
+    urgency: float = 1.0            # 1: each member takes half of the needed relative acceleration
     form_yield_m_s2: float = 0.05   # plan: formation keeping weight 1 / (1 + |a_rep| / this)
     keep_right: float = 0.3         # tangential share (breaks symmetric head-on deadlocks)
+    brake: float = 0.0              # share along -u (lowers the closing speed)
     a_rep_max_m_s2: float = 1.0
     a_plan_max_m_s2: float = 1.4    # plan / reactive command cap, below the vehicle limit
 
@@ -81,6 +83,13 @@ class BackstopParams:
     trigger_m: float = 0.15         # act only if the predicted closest approach is below this (< dense plan clearance)
     target_m: float = 0.15          # ... and then push for this clearance
     share: float = 0.5              # own share of the correction (the other vehicle is assumed to take the rest)
+    # MFG only: a sensed vehicle farther than this from every plan particle is not flying the
+    # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
+    plan_mismatch_m: float = 0.5
+    plan_mismatch_s: float = 0.5    # velocity weight of that distance (a hovering vehicle in a moving plan stands out)
+    unplanned_trigger_m: float = 0.6   # used: min(this, 0.5 * smallest slot spacing)
+    unplanned_target_m: float = 0.8    # used: min(this, 0.6 * smallest slot spacing)
+    unplanned_share: float = 1.0
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
 
@@ -96,6 +105,7 @@ class DefaultPreset(Preset):
     dt_s: float = 0.5
     guidance: GuidanceParams = field(default_factory=GuidanceParams)
     repulsion: RepulsionParams = field(default_factory=RepulsionParams)
+    hjb_repulsion: RepulsionParams = field(default_factory=RepulsionParams)   # HJB_d's reactive repulsion on heard states
     tracking: TrackingParams = field(default_factory=TrackingParams)
     backstop: BackstopParams = field(default_factory=BackstopParams)
     use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)

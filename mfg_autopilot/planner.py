@@ -108,8 +108,9 @@ def _pair_force(d: np.ndarray, u: np.ndarray, radius_m, rp: RepulsionParams) -> 
     n_hat = np.where((rho > 1e-6)[:, None], c / np.maximum(rho, 1e-12)[:, None], fallback)
     # minimal push: the relative acceleration that opens the closest approach to the radius
     # by tau*, 2 (R - rho) / tau*^2, shared by the two members, capped at gain
-    mag = np.minimum(rp.gain_m_s2, np.maximum(radius_m - rho, 0.0) / np.maximum(tau, rp.tau_min_s) ** 2)
-    f = mag[:, None] * (n_hat + rp.keep_right * np.where((un > 1e-9)[:, None], perp, 0.0))
+    mag = np.minimum(rp.gain_m_s2, rp.urgency * np.maximum(radius_m - rho, 0.0) / np.maximum(tau, rp.tau_min_s) ** 2)
+    u_hat = u / np.maximum(un, 1e-12)[:, None]
+    f = mag[:, None] * (n_hat + rp.keep_right * np.where((un > 1e-9)[:, None], perp, 0.0) - rp.brake * u_hat)
     return f, rho
 
 
@@ -186,6 +187,7 @@ class MeanFieldPlan:
         _, grp = np.unique(sites, axis=0, return_inverse=True)
         self.group = grp.reshape(-1)
         spacing = min(min_spacing_m(self.slots_m), min_spacing_m(S0[:, 0:2]))
+        self.spacing_m = float(spacing)          # smallest slot / start spacing
         self.radius_m = float(min(repulsion.radius_m, repulsion.slot_fraction * spacing))
         self.dt_s, self.cost, self.g, self.rp = float(dt_s), cost, guidance, repulsion
         self.use_repulsion, self.use_slots = use_repulsion, use_slots

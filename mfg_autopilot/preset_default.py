@@ -68,12 +68,26 @@ class _DefaultBase:
         """(n, 2) each row's slot (its site before the slots are known)."""
         return self._dest
 
+    def _spacing_m(self) -> float:
+        return float("inf")
+
+    def _unplanned(self, sensed_states: np.ndarray) -> np.ndarray:
+        """(m,) bool: sensed vehicles the controller did not expect (HJB_d: none known)."""
+        return np.zeros(sensed_states.shape[0], dtype=bool)
+
     def _backstop(self, own: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
         bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
         if not bp.enabled:
             return cap_norm(a_nom, a_max)
         sn = _sensed(obs)
-        a, act = apply_backstop(cap_norm(a_nom, a_max), backstop_acc(own, sn.states, sn.owner, bp), a_max)
+        unplanned = self._unplanned(sn.states)
+        da = backstop_acc(own, sn.states[~unplanned], sn.owner[~unplanned], bp)
+        if np.any(unplanned):
+            sp = self._spacing_m()
+            bu = replace(bp, trigger_m=min(bp.unplanned_trigger_m, 0.5 * sp), target_m=min(bp.unplanned_target_m, 0.6 * sp),
+                         share=bp.unplanned_share)
+            da = cap_norm(da + backstop_acc(own, sn.states[unplanned], sn.owner[unplanned], bu), bp.a_max_m_s2)
+        a, act = apply_backstop(cap_norm(a_nom, a_max), da, a_max)
         self.backstop_active = act
         self.backstop_steps += act
         return a
@@ -106,6 +120,19 @@ class DefaultMFGController(_DefaultBase):
         self._dest = self.plan.slots_m[self.own_index].copy()
         w0 = fit_initial_fpk_weights(self.sigma_F, S0 - S0.mean(axis=0), np.asarray(p.learner.fpk_kde_bandwidth))
         self.w_F = np.tile(w0, (self.n, 1))
+
+    def _spacing_m(self) -> float:
+        return self.plan.spacing_m
+
+    def _unplanned(self, sensed_states: np.ndarray) -> np.ndarray:
+        """Sensed vehicles farther than plan_mismatch_m from every plan particle, in the state
+        metric |dr|^2 + (plan_mismatch_s |dv|)^2 (the plan -
+        the same on every UAV - says where everyone should be; no communication needed)."""
+        if sensed_states.shape[0] == 0:
+            return np.zeros(0, dtype=bool)
+        w = np.array([1.0, 1.0, self.preset.backstop.plan_mismatch_s, self.preset.backstop.plan_mismatch_s])
+        d, _ = cKDTree(self.plan.states * w).query(sensed_states * w, k=1)
+        return d > self.preset.backstop.plan_mismatch_m
 
     # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
     def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
@@ -200,13 +227,13 @@ class DefaultHJBController(_DefaultBase):
 
     def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
         super().__init__(preset, destination_site_m)
-        self._radius = np.full(self.n, self.preset.repulsion.radius_m)
+        self._radius = np.full(self.n, self.preset.hjb_repulsion.radius_m)
         self._slots_known = False
 
     def _init_slots(self, own: np.ndarray, heard: Neighbours) -> None:
         """Slot = site + own offset from the centroid of {own, heard at the first step};
         repulsion radius from the nearest heard neighbour (slot spacing)."""
-        n, rp = self.n, self.preset.repulsion
+        n, rp = self.n, self.preset.hjb_repulsion
         cnt = 1.0 + heard.counts(n)
         cen = np.stack([own[:, d] + np.bincount(heard.owner, heard.states[:, d], n) for d in range(2)], axis=1) / cnt[:, None]
         if self.preset.use_slots:
@@ -229,9 +256,9 @@ class DefaultHJBController(_DefaultBase):
             self._init_slots(own, heard)
         s_rel = own - np.concatenate([self._dest, np.zeros_like(self._dest)], axis=1)
         a_goal = goal_acc(s_rel, p.guidance, p.cost)
-        a_rep = (repulsion_from_neighbours(own, heard.states, heard.owner, self._radius, p.repulsion)
+        a_rep = (repulsion_from_neighbours(own, heard.states, heard.owner, self._radius, p.hjb_repulsion)
                  if p.use_repulsion else np.zeros_like(a_goal))
-        a = self._backstop(own, combine_priority(a_rep, a_goal, p.repulsion.a_plan_max_m_s2), obs)
+        a = self._backstop(own, combine_priority(a_rep, a_goal, p.hjb_repulsion.a_plan_max_m_s2), obs)
         z = np.zeros(self.n, dtype=np.int64)
         return StepInfo(a, z, np.zeros(self.n, dtype=bool), np.zeros(self.n), z)
 
