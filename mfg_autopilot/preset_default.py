@@ -71,6 +71,16 @@ class _DefaultBase:
     def _spacing_m(self) -> float:
         return float("inf")
 
+    @staticmethod
+    def _not_heard(sensed: Neighbours, heard: Neighbours | None) -> Neighbours:
+        """The sensed vehicles a row did not also hear this step (HJB_d's repulsion already
+        acts on those; the backstop covers what communication does not). Matched by id."""
+        if heard is None or heard.states.shape[0] == 0 or sensed.states.shape[0] == 0 or sensed.ids is None or heard.ids is None:
+            return sensed
+        big = np.int64(1) << 32
+        keep = ~np.isin(sensed.owner.astype(np.int64) * big + sensed.ids, heard.owner.astype(np.int64) * big + heard.ids)
+        return Neighbours(sensed.states[keep], sensed.owner[keep], sensed.ids[keep])
+
     def _unplanned(self, sensed_states: np.ndarray) -> np.ndarray:
         """(m,) bool: sensed vehicles the controller did not expect (HJB_d: none known)."""
         return np.zeros(sensed_states.shape[0], dtype=bool)
@@ -79,7 +89,7 @@ class _DefaultBase:
         bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
         if not bp.enabled:
             return cap_norm(a_nom, a_max)
-        sn = _sensed(obs)
+        sn = self._not_heard(_sensed(obs), obs.neighbours)
         unplanned = self._unplanned(sn.states)
         da = backstop_acc(own, sn.states[~unplanned], sn.owner[~unplanned], bp)
         if np.any(unplanned):
