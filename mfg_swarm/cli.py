@@ -61,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--mavlink-base-port", type=int, default=None,
                      help="vehicle I uses UDP base+I (PX4 SITL: 14540); default: free ports picked by the OS")
     run.add_argument("--gcs", action="store_true", help="also stream each vehicle's GCS link to udp 127.0.0.1:14550 (QGroundControl, MAVProxy)")
+    run.add_argument("--swarm", default=None, help="Zenoh key prefix mfg/<swarm>/ (default: run<pid>)")
+    run.add_argument("--zenoh-router-config", default=None, metavar="FILE",
+                     help="the router's zenoh json5 (e.g. access control, examples/zenoh_acl/router.json5)")
+    run.add_argument("--zenoh-client-config", default=None, metavar="FILE",
+                     help="the controllers' zenoh json5 (credentials); '{i}' in the name is the vehicle id")
     run.add_argument("--mavlink-key", default=None, metavar="FILE",
                      help="MAVLink 2 signing between every controller and its vehicle (64 hex chars, mode 600)")
     run.add_argument("--time-limit-s", type=float, default=None, help="stop the swarm after this wall time")
@@ -115,7 +120,8 @@ def _cmd_run(args) -> int:
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), lockstep=args.lockstep,
                     zenoh_router=args.zenoh_router, mavlink_base_port=args.mavlink_base_port,
                     gcs_url="udpout:127.0.0.1:14550" if args.gcs else "none", time_limit_s=args.time_limit_s,
-                    progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key)
+                    progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
+                    zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config)
     if args.mavlink_key:
         from mavlink_bridge import load_signing_key
         load_signing_key(args.mavlink_key)    # a missing or loose key file fails before any process starts

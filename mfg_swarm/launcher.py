@@ -69,6 +69,9 @@ class RunConfig:
     progress: bool | None = None
     extra_controller_args: tuple[str, ...] = ()
     mavlink_key_file: str | None = None       # MAVLink 2 signing between every controller and its vehicle
+    swarm: str | None = None                  # Zenoh key prefix mfg/<swarm>/ (default: run<pid>)
+    zenoh_router_config: str | None = None    # router json5 (e.g. with access control, docs/security.md)
+    zenoh_client_config: str | None = None    # controllers' json5; "{i}" is replaced by the vehicle id
     python: str = field(default_factory=lambda: sys.executable)
 
 
@@ -236,6 +239,10 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         z_ports = [cfg.zenoh_base_port + i for i in range(n + 1)]
         _check_ports_free(socket.SOCK_STREAM, z_ports, "Zenoh")
     use_router = cfg.zenoh_router if cfg.zenoh_router is not None else n > PEER_MESH_MAX_N
+    if cfg.zenoh_router_config or cfg.zenoh_client_config:
+        if cfg.zenoh_router is False:
+            raise LaunchError("Zenoh router/client configs need the router topology: drop --zenoh-peers")
+        use_router = True
 
     py = cfg.python
     wind = plant_params_for(preset, cfg.physics_dt_s).wind
@@ -259,7 +266,9 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     try:
         if use_router:
             router.append(_Child("zenoh-router", [py, "-m", "mfg_autopilot.zenoh_router", "--zenoh-listen",
-                                                  f"tcp/127.0.0.1:{z_ports[n]}"], out / "stderr" / "zenoh-router.log"))
+                                                  f"tcp/127.0.0.1:{z_ports[n]}"]
+                                 + (["--zenoh-config", cfg.zenoh_router_config] if cfg.zenoh_router_config else []),
+                                 out / "stderr" / "zenoh-router.log"))
         if world_port is not None:
             world.append(_Child("world", [py, "-m", "mock_vehicle.world", "--listen", f"127.0.0.1:{world_port}", "--n", str(n),
                                           "--sensor-range-m", repr(float(sensor_range_m)), "--log-level", "WARNING",
@@ -284,7 +293,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         ctrl_logs = [out / "controllers" / f"controller{i}.jsonl" for i in range(n)]
         for i in range(n):
             argv = [py, "-m", "mfg_autopilot.cli", "--instance", str(i), "--connect", f"udpin:127.0.0.1:{mav_ports[i]}",
-                    "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", f"run{os.getpid()}",
+                    "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", cfg.swarm or f"run{os.getpid()}",
                     "--mission", str(out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
                     "--state-dir", str(out / "controllers" / f"state{i}"),
                     "--log-level", "WARNING", "--exchange-timeout-s", repr(cfg.startup_timeout_s)]
@@ -294,6 +303,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                 argv.append("--lockstep")
             if use_router:
                 argv += ["--zenoh-mode", "client", "--zenoh-connect", f"tcp/127.0.0.1:{z_ports[n]}"]
+                if cfg.zenoh_client_config:
+                    argv += ["--zenoh-config", cfg.zenoh_client_config.replace("{i}", str(i))]
             else:
                 argv += ["--zenoh-listen", f"tcp/127.0.0.1:{z_ports[i]}"]
                 if i > 0:

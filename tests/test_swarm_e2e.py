@@ -132,3 +132,16 @@ def test_signed_swarm_flies_and_every_setpoint_is_signed(tmp_path):
     os.chmod(key, 0o644)
     proc = _run(tmp_path / "loose", "--n", "2", "--steps", "2", "--mavlink-key", str(key))
     assert proc.returncode == 2 and "chmod 600" in proc.stderr
+
+
+def test_swarm_flies_through_an_access_controlled_zenoh_router(tmp_path):
+    """Per-vehicle credentials and an ACL router (examples/zenoh_acl/make_acl.py): every
+    controller's t = 0 state arrives through the router it is allowed to publish to."""
+    acl = tmp_path / "acl"
+    subprocess.run([sys.executable, "examples/zenoh_acl/make_acl.py", "--swarm", "aclrun", "--n", "3", "--out", str(acl)],
+                   check=True, capture_output=True, timeout=60)
+    proc = _run(tmp_path / "run", "--n", "3", "--mode", "mfg", "--steps", "6", "--preset", "paper", "--swarm", "aclrun",
+                "--zenoh-router-config", str(acl / "router.json5"), "--zenoh-client-config", str(acl / "vehicle{i}.json5"))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["comm_states_per_uav"] == 2.0 and not m["partial"]
