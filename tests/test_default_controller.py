@@ -119,3 +119,16 @@ def test_gust_beyond_v_o_is_applied_and_reported():
     assert gust["gust"]["acc_m_s2"] == 1.0
     assert gust["motion_energy_per_uav"] != calm["motion_energy_per_uav"]
     assert gust["collision_pairs"] == 0 and gust["arrived_fraction"] == 1.0
+
+
+def test_cli_fault_options_reach_the_simulator_and_bad_ones_are_clear_errors(tmp_path, capsys):
+    import json
+
+    from mfg_swarm.cli import main
+    out = tmp_path / "f"
+    assert main(["sim", "--scenario", "crossing", "--n", "6", "--steps", "6", "--fail-vehicle", "1", "--fail-at", "1.0",
+                 "--gust", "--out", str(out), "--no-progress"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["preset"] == "default" and m["fail_vehicle"] == 1 and m["gust"]["duration_s"] == 5.0
+    assert main(["sim", "--n", "4", "--steps", "2", "--fail-vehicle", "4", "--out", str(tmp_path / "g"), "--no-progress"]) == 2
+    assert "fail_vehicle" in capsys.readouterr().err
