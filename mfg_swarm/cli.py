@@ -23,7 +23,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     rng.add_argument("--range-m", type=float, default=None, help="HJB_d radio range d in metres")
     rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P in mW; d = [P/(theta sigma^2)]^(1/alpha)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the wind streams (default: 0)")
-    p.add_argument("--steps", type=int, default=200, help="control steps (default: 200, i.e. 200 s at dt = 1 s)")
+    p.add_argument("--steps", type=int, default=200, help="control steps (default: 200: 100 s at the default preset's dt = 0.5 s, 200 s at the paper's dt = 1 s)")
     p.add_argument("--preset", default="default", help="controller preset: default (the product controller) or paper (default: default)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
