@@ -38,7 +38,7 @@ from mavlink_bridge import BridgeError, HomePosition, LocalPositionNed, Telemetr
 from mavlink_bridge.adsb import adsb_states
 
 from .controller import Neighbours, Observation, make_controller
-from .exchange import SwarmExchange, ZenohSettings
+from .exchange import ExchangeError, ExchangeTimeout, SwarmExchange, ZenohSettings
 from .params import preset_by_name
 
 __all__ = ["AutopilotConfig", "ControllerLog", "run_autopilot", "LOCKSTEP_PRESTREAM_TIME_BOOT_MS", "AutopilotError"]
@@ -464,15 +464,20 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     reason = "error"
     try:
         key = None if cfg.mavlink_key_file is None else load_signing_key(cfg.mavlink_key_file)
-        link = VehicleLink.open(cfg.connect, target_system=cfg.system_id, target_component=1,
-                                source_system=cfg.system_id, tlog_path=cfg.tlog_path, signing_key=key)
-        link.wait_heartbeat(cfg.vehicle_timeout_s)
-        clog.event("vehicle_found", system_id=cfg.system_id)
-        p0 = link.wait_local_position(None, cfg.vehicle_timeout_s)
-        s0 = _state_of(p0)
+        # the swarm's session first: a bad Zenoh configuration fails before anything flies
         with SwarmExchange(cfg.zenoh, _swarm_key(cfg.swarm), cfg.instance, cfg.n) as exchange:
+            link = VehicleLink.open(cfg.connect, target_system=cfg.system_id, target_component=1,
+                                    source_system=cfg.system_id, tlog_path=cfg.tlog_path, signing_key=key)
+            link.wait_heartbeat(cfg.vehicle_timeout_s)
+            clog.event("vehicle_found", system_id=cfg.system_id)
+            p0 = link.wait_local_position(None, cfg.vehicle_timeout_s)
+            s0 = _state_of(p0)
             ap = Autopilot(cfg, link, exchange, clog, stop)
-            n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
+            try:
+                n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
+            except ExchangeTimeout as exc:
+                where = f"; check that --zenoh-connect {list(cfg.zenoh.connect)} is reachable" if cfg.zenoh.connect else ""
+                raise AutopilotError(f"{exc}{where}") from None
             if stop.is_set():
                 reason = "signal"
             else:
@@ -483,7 +488,7 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
                         "states_received_t0": n_t0,
                         "destination_m": np.asarray(ap.ctrl.destinations_m, dtype=float)[0]})
         return 0
-    except (BridgeError, AutopilotError, TimeoutError, ValueError) as exc:
+    except (BridgeError, AutopilotError, ExchangeError, TimeoutError, ValueError) as exc:
         clog.event("error", error=f"{type(exc).__name__}: {exc}")
         log.error("%s: %s", type(exc).__name__, exc)
         return 1

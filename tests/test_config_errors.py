@@ -1,0 +1,60 @@
+"""Bad configuration gets a clear error that names the problem and the fix (issue 10)."""
+
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from _net import free_udp_port
+
+pytestmark = pytest.mark.e2e
+
+
+def _swarm(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "mfg_swarm.cli", *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _autopilot(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "mfg_autopilot.cli", "--instance", "0", "--n", "1", *args],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_impossible_swarm_sizes(tmp_path):
+    p = _swarm("run", "--n", "300", "--out", str(tmp_path / "a"), "--no-plot")
+    assert p.returncode == 2 and "N = 300 is impossible" in p.stderr and "1..253" in p.stderr
+    p = _swarm("run", "--n", "0", "--out", str(tmp_path / "b"), "--no-plot")
+    assert p.returncode == 2 and "n must be >= 1" in p.stderr
+
+
+def test_port_in_use_is_named(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        p = _swarm("run", "--n", "2", "--mavlink-base-port", str(port), "--out", str(tmp_path / "c"), "--no-plot")
+    assert p.returncode == 2 and f"port {port}" in p.stderr and "in use" in p.stderr and "another base port" in p.stderr
+
+
+def test_unreachable_zenoh_router_is_named():
+    p = _autopilot("--connect", f"udpin:127.0.0.1:{free_udp_port()}", "--zenoh-mode", "client",
+                   "--zenoh-connect", "tcp/127.0.0.1:1", "--vehicle-timeout-s", "1")
+    assert p.returncode == 1 and "cannot open zenoh session" in p.stderr and "tcp/127.0.0.1:1" in p.stderr
+
+
+def test_bad_connection_string_lists_the_accepted_forms():
+    p = _autopilot("--connect", "bogus:xyz")
+    assert p.returncode == 1 and "unknown connection string 'bogus:xyz'" in p.stderr and "udpin:" in p.stderr
+
+
+def test_missing_and_loose_key_files(tmp_path):
+    p = _autopilot("--connect", f"udpin:127.0.0.1:{free_udp_port()}", "--mavlink-key", str(tmp_path / "none.key"))
+    assert p.returncode == 1 and "does not exist" in p.stderr and "--generate" in p.stderr
+    p = _swarm("run", "--n", "2", "--mavlink-key", str(tmp_path / "none.key"), "--out", str(tmp_path / "d"), "--no-plot")
+    assert p.returncode == 2 and "does not exist" in p.stderr
+
+
+def test_missing_mission_file_and_bad_preset(tmp_path):
+    p = _autopilot("--connect", "udpin:127.0.0.1:1", "--mission", str(tmp_path / "nope.json"))
+    assert p.returncode == 2 and "mission file" in p.stderr and "not found" in p.stderr
+    p = _swarm("sim", "--preset", "nonesuch", "--out", str(tmp_path / "e"))
+    assert p.returncode == 2 and "unknown preset 'nonesuch'" in p.stderr
