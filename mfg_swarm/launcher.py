@@ -123,12 +123,23 @@ def _check_ports_free(kind: int, ports: list[int], what: str) -> None:
                                   f"(e.g. another swarm or PX4 SITL), or choose another base port") from None
 
 
+def _die_with_parent() -> None:
+    """In the child, before exec: get SIGTERM if the launcher dies (even by SIGKILL), so no
+    vehicle or controller outlives it (Linux prctl PR_SET_PDEATHSIG; elsewhere a no-op)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        pass
+
+
 class _Child:
     def __init__(self, name: str, argv: list[str], log_path: Path) -> None:
         self.name, self.argv, self.log_path = name, argv, log_path
         self._fh = open(log_path, "wb")
         self.p = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                  start_new_session=True)
+                                  start_new_session=True, preexec_fn=_die_with_parent)
 
     def alive(self) -> bool:
         return self.p.poll() is None

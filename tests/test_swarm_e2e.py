@@ -145,3 +145,31 @@ def test_swarm_flies_through_an_access_controlled_zenoh_router(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["comm_states_per_uav"] == 2.0 and not m["partial"]
+
+
+def test_launcher_killed_hard_takes_its_children_and_leaves_a_partial_folder(tmp_path):
+    out = tmp_path / "killed"
+    p = subprocess.Popen([sys.executable, "-m", "mfg_swarm.cli", "run", "--out", str(out), "--no-progress", "--no-plot",
+                          "--n", "2", "--mode", "mfg", "--steps", "100000", "--preset", "paper"],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 90
+        f = out / "controllers" / "controller0.jsonl"
+        while not (f.exists() and '"type":"step"' in f.read_text()):
+            assert time.monotonic() < deadline and p.poll() is None, "swarm never started flying"
+            time.sleep(0.2)
+        kids = psutil.Process(p.pid).children(recursive=True)
+        assert len(kids) >= 4
+        p.kill()
+        p.wait(10)
+        gone, alive = psutil.wait_procs(kids, timeout=30)
+        assert not alive, f"children outlived the launcher: {[k.pid for k in alive]}"
+    finally:
+        if p.poll() is None:
+            p.kill()
+    status = json.loads((out / "STATUS.json").read_text())
+    assert status["partial"] is True
+    # what was recorded is still readable: the tlogs and the controllers' logs up to their last line
+    from mfg_swarm.flightlog import read_controller_log, read_vehicle_tlog
+    assert read_controller_log(out / "controllers" / "controller0.jsonl").steps
+    assert read_vehicle_tlog(out / "vehicles" / "vehicle0.tlog", 1).state.shape[0] > 0
