@@ -83,7 +83,22 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--steps", type=int, default=200)
     rep.add_argument("--workers", type=int, default=2, help="parallel simulator processes (default: 2)")
     rep.add_argument("--no-processes", action="store_true", help="skip the process-swarm check")
+    bench = sub.add_parser("bench", help="benchmarks: controller step, simulator scaling, process swarm, latency (docs/benchmarks.md)")
+    bench.add_argument("--out", type=Path, required=True, help="output folder (bench.json)")
+    bench.add_argument("--quick", action="store_true", help="small sizes and few steps (a smoke run, not figures)")
+    bench.add_argument("--only", default=None, help="comma-separated sections: step,sim,swarm,latency,pde (default: all)")
+    bench.add_argument("--sim-timeout-s", type=float, default=900.0, help="give up on a simulator point after this wall time")
     return ap
+
+
+def _cmd_bench(args) -> int:
+    from .bench import SECTIONS, format_table, run_bench
+
+    only = tuple(x for x in args.only.split(",") if x) if args.only else SECTIONS
+    res = run_bench(args.out, quick=args.quick, only=only, sim_timeout_s=args.sim_timeout_s)
+    print(format_table(res))
+    print(f"figures in {args.out}/bench.json", file=sys.stderr)
+    return 0
 
 
 def _range_from(args) -> float | None:
@@ -200,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_plot(args)
         if args.cmd == "reproduce":
             return _cmd_reproduce(args)
+        if args.cmd == "bench":
+            return _cmd_bench(args)
     except ValueError as exc:
         print(f"mfg-swarm: error: {exc}", file=sys.stderr)
         return 2

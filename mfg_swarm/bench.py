@@ -1,0 +1,391 @@
+"""`mfg-swarm bench`: per-step cost, simulator scaling, process-swarm speed, latency (issue 8).
+
+    mfg-swarm bench --out DIR [--quick] [--only step,sim,swarm,latency,pde]
+
+Each section measures what it compares in the same run and reports a median over repeats
+with its spread (p10/p90, or min/max where there are few repeats). Results: DIR/bench.json
+and a table on stdout. No figure here is asserted by a test; docs/benchmarks.md holds a run.
+
+Sections
+- ``step``: wall time of one controller step for ONE vehicle (a bank of 1), p50/p99 over
+  the steps of a replay, and as a fraction of the preset's control period dt.
+- ``sim``: `simulate` wall time and peak RSS (ru_maxrss of a fresh subprocess per point),
+  default preset, both modes; the growth exponent is the log-log slope over the two largest
+  points measured. The paper preset's MFG (O(N^2) by construction) on small N only.
+- ``swarm``: the process swarm in lockstep (`mfg-swarm run`): simulated seconds per wall
+  second (from the first to the last control step, start-up excluded; and including
+  start-up), CPU seconds and peak RSS of the children (psutil), per vehicle pair.
+- ``latency``: a real-time flight; `latency_ms` of every controller step record (arrival
+  of the LOCAL_POSITION_NED used -> setpoint sent).
+- ``pde``: bench/pde_bench.py's learned-vs-solved time per decision, small settings.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["run_bench", "SECTIONS", "format_table"]
+
+SECTIONS = ("step", "sim", "swarm", "latency", "pde")
+
+
+def _stats_ms(samples_s) -> dict:
+    a = np.asarray(samples_s, dtype=float) * 1e3
+    return {"n": int(a.size), "p50_ms": float(np.percentile(a, 50)), "p10_ms": float(np.percentile(a, 10)),
+            "p90_ms": float(np.percentile(a, 90)), "p99_ms": float(np.percentile(a, 99)), "max_ms": float(a.max())}
+
+
+def machine_info() -> dict:
+    model = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"nproc": os.cpu_count(), "cpu_model": model, "python": platform.python_version(),
+            "numpy": np.__version__, "platform": platform.platform()}
+
+
+def _load() -> list[float]:
+    return list(os.getloadavg())
+
+
+# -- controller step, one vehicle ---------------------------------------------------------
+def bench_step(quick: bool = False) -> list[dict]:
+    from mfg_autopilot.controller import Neighbours, Observation, make_controller
+    from mfg_autopilot.params import preset_by_name
+    from mfg_swarm.scenarios import make_scenario
+
+    steps = 40 if quick else 300
+    rng = np.random.default_rng(0)
+    paper, default = preset_by_name("paper"), preset_by_name("default")
+    cases = []
+    for k_nb in (0, 8, 24):
+        cases.append(("hjb", paper, f"HJB_d paper, {k_nb} neighbours", {"neighbours": k_nb}))
+    for K in (1, 5):
+        for N in (25, 81):
+            pr = replace(paper, learner=replace(paper.learner, K=K))
+            cases.append(("mfg", pr, f"MFG paper K={K}, N={N}", {"K": K, "N": N}))
+    for N in (25, 81):
+        cases.append(("mfg", default, f"MFG default, N={N}", {"N": N}))
+    for k_nb in (0, 8, 24):
+        cases.append(("hjb", default, f"HJB_d default, {k_nb} neighbours", {"neighbours": k_nb}))
+    out = []
+    for mode, preset, label, extra in cases:
+        N = extra.get("N", 25)
+        sc = make_scenario("paper", N)
+        s0 = np.concatenate([sc.initial_pos_m, np.tile(preset.cost.v_o, (N, 1))], axis=1)
+        ctrl = make_controller(mode, preset, sc.destination_m[0:1])
+        if mode == "mfg" or getattr(ctrl, "uses_t0_exchange", False):
+            ctrl.exchange_t0(s0, np.arange(N), np.array([0]), sc.destination_m)
+        own = s0[0:1].copy()
+        k_nb = extra.get("neighbours", 0)
+        times = []
+        for k in range(steps):
+            nb = None
+            if mode == "hjb":
+                st = own + np.concatenate([rng.normal(0, 3.0, (k_nb, 2)), rng.normal(0, 0.5, (k_nb, 2))], axis=1)
+                nb = Neighbours(st, np.zeros(k_nb, dtype=np.int64), np.arange(1, k_nb + 1))
+            obs = Observation(k, k * preset.dt_s, own.copy(), nb, None)
+            t = time.perf_counter()
+            info = ctrl.step(obs)
+            times.append(time.perf_counter() - t)
+            # a crude plant so that the state moves as in flight (not timed)
+            a = np.asarray(info.acc_m_s2, dtype=float).reshape(1, 2)
+            own[:, 0:2] += own[:, 2:4] * preset.dt_s
+            own[:, 2:4] += a * preset.dt_s
+        st = _stats_ms(times[1:])          # the first step pays one-off set-up (e.g. the plan's first action)
+        st.update(label=label, mode=mode, preset=preset.name, dt_s=preset.dt_s, first_step_ms=times[0] * 1e3,
+                  p50_frac_dt=st["p50_ms"] / 1e3 / preset.dt_s, p99_frac_dt=st["p99_ms"] / 1e3 / preset.dt_s, **extra)
+        out.append(st)
+    return out
+
+
+# -- simulator scaling ---------------------------------------------------------------------
+_SIM_CHILD = r"""
+import json, resource, sys, time
+from mfg_autopilot.params import preset_by_name
+from mfg_swarm.scenarios import make_scenario
+from mfg_swarm.sim import SimConfig, simulate
+a = json.loads(sys.argv[1])
+cfg = SimConfig(scenario=make_scenario(a["scenario"], a["n"]), mode=a["mode"], preset=preset_by_name(a["preset"]),
+                seed=0, steps=a["steps"], range_m=a["range_m"])
+t = time.perf_counter(); _, m = simulate(cfg, progress=False); wall = time.perf_counter() - t
+print(json.dumps({"wall_s": wall, "cpu_s": time.process_time(), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "collision_pairs": m["collision_pairs"], "arrived_fraction": m["arrived_fraction"]}))
+"""
+
+
+def _sim_point(n: int, mode: str, preset: str, steps: int, timeout_s: float, scenario: str = "paper") -> dict:
+    args = {"n": n, "mode": mode, "preset": preset, "steps": steps, "scenario": scenario,
+            "range_m": 10.0 if mode == "hjb" else None}
+    rec = {"n": n, "mode": mode, "preset": preset, "scenario": scenario, "steps": steps, "load_before": _load()}
+    t = time.perf_counter()
+    try:
+        p = subprocess.run([sys.executable, "-c", _SIM_CHILD, json.dumps(args)], capture_output=True, text=True,
+                           timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        rec.update(status="timeout", timeout_s=timeout_s, wall_s=None)
+        return rec
+    if p.returncode != 0:
+        rec.update(status="error", error=p.stderr[-2000:])
+        return rec
+    rec.update(json.loads(p.stdout.strip().splitlines()[-1]), status="ok", process_wall_s=time.perf_counter() - t)
+    return rec
+
+
+def _slope(points: list[dict]) -> float | None:
+    ok = [p for p in points if p.get("status") == "ok"]
+    if len(ok) < 2:
+        return None
+    a, b = ok[-2], ok[-1]
+    return math.log(b["wall_s"] / a["wall_s"]) / math.log(b["n"] / a["n"])
+
+
+def bench_sim(quick: bool = False, timeout_s: float = 900.0, ns: tuple[int, ...] | None = None,
+              repeats: int | None = None) -> dict:
+    """Default preset, 200 simulated seconds = 400 steps at dt = 0.5 s (quick: 20 steps)."""
+    from mfg_autopilot.params import preset_by_name
+
+    steps = 20 if quick else int(round(200.0 / preset_by_name("default").dt_s))
+    ns = ns or ((25, 81) if quick else (25, 81, 1000, 10000))
+    repeats = repeats or (1 if quick else 3)
+    out: dict = {"steps": steps, "simulated_s": steps * preset_by_name("default").dt_s, "points": [], "exponent": {}}
+    for mode in ("mfg", "hjb"):
+        pts = []
+        for n in ns:
+            reps = [_sim_point(n, mode, "default", steps, timeout_s) for _ in range(repeats if n <= 81 else 1)]
+            ok = [r for r in reps if r["status"] == "ok"]
+            rec = dict(reps[-1])
+            if ok:
+                w = [r["wall_s"] for r in ok]
+                rec.update(wall_s=float(np.median(w)), wall_min_s=min(w), wall_max_s=max(w), repeats=len(ok),
+                           peak_rss_mb=float(max(r["peak_rss_mb"] for r in ok)))
+            pts.append(rec)
+            out["points"].append(rec)
+            if rec["status"] != "ok":
+                break                      # larger N would not finish either
+        out["exponent"][mode] = _slope(pts)
+    # the paper preset's MFG: N particles per vehicle, O(N^2) per step by construction (docs/mean_field.md)
+    psteps = 10 if quick else 50
+    paper_pts = [_sim_point(n, "mfg", "paper", psteps, timeout_s) for n in ((25,) if quick else (25, 81, 256))]
+    out["paper_mfg"] = {"steps": psteps, "points": paper_pts, "exponent": _slope(paper_pts)}
+    return out
+
+
+# -- process swarm -------------------------------------------------------------------------
+class _ChildSampler:
+    """Polls psutil over this process's children: peak RSS and last CPU times per pid, by role."""
+
+    def __init__(self, period_s: float = 0.25) -> None:
+        import psutil
+
+        self.psutil, self.period_s = psutil, period_s
+        self.me = psutil.Process()
+        self.cpu: dict[int, float] = {}
+        self.rss: dict[int, int] = {}
+        self.role: dict[int, str] = {}
+        self.stop = threading.Event()
+        self.th = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            for c in self.me.children(recursive=True):
+                try:
+                    with c.oneshot():
+                        ct = c.cpu_times()
+                        self.cpu[c.pid] = ct.user + ct.system
+                        self.rss[c.pid] = max(self.rss.get(c.pid, 0), c.memory_info().rss)
+                        if c.pid not in self.role:
+                            cmd = " ".join(c.cmdline())
+                            self.role[c.pid] = ("controller" if "mfg_autopilot.cli" in cmd else "mock" if "mock_vehicle.cli" in cmd
+                                                else "router" if "zenoh_router" in cmd else "world" if "mock_vehicle.world" in cmd
+                                                else "other")
+                except (self.psutil.NoSuchProcess, self.psutil.AccessDenied, self.psutil.ZombieProcess):
+                    pass
+            self.stop.wait(self.period_s)
+
+    def __enter__(self):
+        self.th.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.th.join()
+
+    def by_role(self) -> dict:
+        out: dict = {}
+        for pid, role in self.role.items():
+            r = out.setdefault(role, {"count": 0, "cpu_s": 0.0, "peak_rss_mb_sum": 0.0})
+            r["count"] += 1
+            r["cpu_s"] += self.cpu.get(pid, 0.0)
+            r["peak_rss_mb_sum"] += self.rss.get(pid, 0) / 2**20
+        return out
+
+
+def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = "mfg") -> dict:
+    from mfg_swarm.launcher import RunConfig, run_swarm
+    from mfg_swarm.scenarios import make_scenario
+
+    from mfg_autopilot.params import preset_by_name
+
+    dt = preset_by_name("default").dt_s
+    cfg = RunConfig(scenario=make_scenario("paper", n), mode=mode, preset_name="default", out=out_dir, seed=0, steps=steps,
+                    range_m=10.0 if mode == "hjb" else None, lockstep=lockstep, progress=False)
+    first_step = {"t": None}
+    stop = threading.Event()
+
+    def watch() -> None:               # when the first control step record appears (start-up over)
+        log = out_dir / "controllers" / "controller0.jsonl"
+        while not stop.is_set() and first_step["t"] is None:
+            try:
+                if '"type": "step"' in log.read_text() or '"type":"step"' in log.read_text():
+                    first_step["t"] = time.perf_counter()
+            except OSError:
+                pass
+            stop.wait(0.05)
+
+    w = threading.Thread(target=watch, daemon=True)
+    load0 = _load()
+    t0 = time.perf_counter()
+    with _ChildSampler() as samp:
+        w.start()
+        _, metrics = run_swarm(cfg)
+        t1 = time.perf_counter()
+    stop.set(); w.join()
+    roles = samp.by_role()
+    sim_s = steps * dt
+    rec = {"n": n, "mode": mode, "steps": steps, "simulated_s": sim_s, "lockstep": lockstep, "load_before": load0,
+           "wall_total_s": t1 - t0, "partial": bool(metrics.get("partial")), "roles": roles,
+           "realtime_factor_total": sim_s / (t1 - t0)}
+    if first_step["t"] is not None:
+        rec["wall_flight_s"] = t1 - first_step["t"]
+        rec["realtime_factor_flight"] = sim_s / max(t1 - first_step["t"], 1e-9)
+    pair_cpu = sum(roles.get(r, {}).get("cpu_s", 0.0) for r in ("mock", "controller"))
+    pair_rss = sum(roles.get(r, {}).get("peak_rss_mb_sum", 0.0) for r in ("mock", "controller"))
+    rec.update(cpu_s_per_pair=pair_cpu / n, peak_rss_mb_per_pair=pair_rss / n,
+               cpu_s_per_pair_per_sim_s=pair_cpu / n / sim_s)
+    return rec
+
+
+def bench_swarm(out: Path, quick: bool = False) -> list[dict]:
+    ns = (4, 9) if quick else (4, 9, 25, 49, 81)
+    steps = 20 if quick else 120
+    res = []
+    for n in ns:
+        res.append(_swarm_point(n, steps, True, out / f"swarm-n{n}"))
+    return res
+
+
+def bench_latency(out: Path, quick: bool = False) -> dict:
+    """A real-time flight of N = 1 (quick: 10 s, else 40 s = 80 steps at dt = 0.5 s)."""
+    from mfg_swarm.flightlog import read_controller_log  # noqa: F401 (format reference)
+
+    n, steps = (1, 20) if quick else (4, 80)
+    d = out / f"latency-n{n}"
+    rec = _swarm_point(n, steps, False, d)
+    lat = []
+    for f in sorted((d / "controllers").glob("controller*.jsonl")):
+        for line in f.read_text().splitlines():
+            try:
+                r = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if r.get("type") == "step" and r.get("latency_ms") is not None:
+                lat.append(float(r["latency_ms"]))
+    st = _stats_ms(np.asarray(lat) / 1e3) if lat else {"n": 0}
+    return {"n_vehicles": n, "steps": steps, "latency": st, "flight": rec}
+
+
+def bench_pde_ratio(quick: bool = False) -> dict:
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+    try:
+        import pde_bench
+    finally:
+        sys.path.pop(0)
+    r = pde_bench.bench_pde(n=9, steps=5 if quick else 20, levels=((4.0, 1.0),), mfg_levels=1, inits=("lqr",), flights=False)
+    return {"n": 9, "steps": r["steps"], "timing": r["timing"]}
+
+
+# -- report ---------------------------------------------------------------------------------
+def format_table(res: dict) -> str:
+    L = []
+    m = res["machine"]
+    L.append(f"machine: {m['nproc']} cores, {m['cpu_model']}; load before {res['load_before']}, after {res.get('load_after')}")
+    if "step" in res:
+        L.append("\nController step, one vehicle (ms; fraction of dt)")
+        L.append(f"{'case':36s} {'p50':>8s} {'p99':>8s} {'p10':>8s} {'p90':>8s} {'p50/dt':>9s} {'p99/dt':>9s}")
+        for r in res["step"]:
+            L.append(f"{r['label']:36s} {r['p50_ms']:8.3f} {r['p99_ms']:8.3f} {r['p10_ms']:8.3f} {r['p90_ms']:8.3f} "
+                     f"{r['p50_frac_dt']:9.2e} {r['p99_frac_dt']:9.2e}")
+    if "sim" in res:
+        s = res["sim"]
+        L.append(f"\nSimulator, default preset, paper scenario, {s['steps']} steps = {s['simulated_s']:.0f} simulated s")
+        L.append(f"{'mode':5s} {'N':>6s} {'wall s':>9s} {'min':>8s} {'max':>8s} {'peak MB':>8s} status")
+        for r in s["points"]:
+            wall = f"{r['wall_s']:9.2f}" if r.get("wall_s") is not None else f"{'>' + str(r.get('timeout_s')):>9s}"
+            L.append(f"{r['mode']:5s} {r['n']:6d} {wall} {r.get('wall_min_s', float('nan')):8.2f} {r.get('wall_max_s', float('nan')):8.2f} "
+                     f"{r.get('peak_rss_mb', float('nan')):8.0f} {r['status']}")
+        L.append("growth exponent (log-log slope, two largest N): " + ", ".join(
+            f"{k} {v:.2f}" if v is not None else f"{k} n/a" for k, v in s["exponent"].items()))
+        pm = s["paper_mfg"]
+        L.append(f"paper preset MFG ({pm['steps']} steps): " + ", ".join(
+            f"N={r['n']}: {r['wall_s']:.2f} s" if r.get("wall_s") is not None else f"N={r['n']}: {r['status']}" for r in pm["points"])
+                 + (f"; exponent {pm['exponent']:.2f}" if pm["exponent"] is not None else ""))
+    if "swarm" in res:
+        L.append("\nProcess swarm, lockstep, default preset MFG (sim s / wall s; per vehicle pair = mock + controller)")
+        L.append(f"{'N':>4s} {'steps':>6s} {'x real (flight)':>16s} {'x real (total)':>15s} {'CPU s/pair':>11s} {'CPU/pair/sim s':>15s} {'peak MB/pair':>13s}")
+        for r in res["swarm"]:
+            L.append(f"{r['n']:4d} {r['steps']:6d} {r.get('realtime_factor_flight', float('nan')):16.2f} {r['realtime_factor_total']:15.2f} "
+                     f"{r['cpu_s_per_pair']:11.2f} {r['cpu_s_per_pair_per_sim_s']:15.3f} {r['peak_rss_mb_per_pair']:13.0f}"
+                     + (" PARTIAL" if r["partial"] else ""))
+    if "latency" in res:
+        la = res["latency"]["latency"]
+        L.append(f"\nTelemetry-to-setpoint latency, real time, N = {res['latency']['n_vehicles']}: "
+                 + (f"{la['n']} steps, p50 {la['p50_ms']:.3f} ms, p99 {la['p99_ms']:.3f} ms, max {la['max_ms']:.3f} ms" if la["n"] else "no steps"))
+    if "pde" in res:
+        L.append("\nLearned vs solved (bench/pde_bench.py, N = 9, coarsest grid): time per decision")
+        for r in res["pde"]["timing"]:
+            L.append(f"  {r['mode']:8s} learned {r['learned_s_per_decision'] * 1e3:.3f} ms, solved {r['solved_s_per_decision'] * 1e3:.3f} ms, "
+                     f"solved/learned {r["ratio_step"]:.2f}x (with re-solve per decision {r['ratio_resolve_per_decision']:.0f}x)")
+    return "\n".join(L)
+
+
+def run_bench(out: Path, quick: bool = False, only: tuple[str, ...] = SECTIONS, sim_timeout_s: float = 900.0,
+              log=lambda s: print(s, file=sys.stderr)) -> dict:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    bad = set(only) - set(SECTIONS)
+    if bad:
+        raise ValueError(f"unknown bench sections {sorted(bad)}; known: {', '.join(SECTIONS)}")
+    res: dict = {"quick": quick, "machine": machine_info(), "load_before": _load(), "started_unix_s": time.time()}
+    work = Path(tempfile.mkdtemp(prefix="swarm-", dir=out))
+    steps = [("step", lambda: bench_step(quick)), ("sim", lambda: bench_sim(quick, sim_timeout_s)),
+             ("swarm", lambda: bench_swarm(work, quick)), ("latency", lambda: bench_latency(work, quick)),
+             ("pde", lambda: bench_pde_ratio(quick))]
+    for name, fn in steps:
+        if name not in only:
+            continue
+        log(f"bench: {name} ...")
+        t = time.perf_counter()
+        res[name] = fn()
+        res.setdefault("section_wall_s", {})[name] = time.perf_counter() - t
+        res["load_after"] = _load()
+        (out / "bench.json").write_text(json.dumps(res, indent=1))      # partial results survive a later failure
+    res["load_after"] = _load()
+    (out / "bench.json").write_text(json.dumps(res, indent=1))
+    return res
