@@ -361,7 +361,7 @@ def format_table(res: dict) -> str:
         L.append("\nLearned vs solved (bench/pde_bench.py, N = 9, coarsest grid): time per decision")
         for r in res["pde"]["timing"]:
             L.append(f"  {r['mode']:8s} learned {r['learned_s_per_decision'] * 1e3:.3f} ms, solved {r['solved_s_per_decision'] * 1e3:.3f} ms, "
-                     f"solved/learned {r["ratio_step"]:.2f}x (with re-solve per decision {r['ratio_resolve_per_decision']:.0f}x)")
+                     f"solved/learned {r['ratio_step']:.2f}x (with re-solve per decision {r['ratio_resolve_per_decision']:.0f}x)")
     return "\n".join(L)
 
 
