@@ -111,6 +111,7 @@ def plot_energy(metrics: list[dict], out_png: Path, title: str = "") -> Path | N
     keys = [("comm_states_per_uav", "communication"), ("grad_evals_per_uav", "computation"), ("motion_energy_per_uav", "motion")]
     fig, axes = plt.subplots(1, 3, figsize=(11, 3.4))
     for ax, (key, name) in zip(axes, keys):
+        ref_zero = all(m[key] == 0 for ms in by[ref].values() for m in ms)
         for label in sorted(by):
             if label == ref:
                 continue
@@ -119,9 +120,12 @@ def plot_energy(metrics: list[dict], out_png: Path, title: str = "") -> Path | N
             for n in ns:
                 r = np.mean([m[key] for m in by[ref][n]])
                 v = np.mean([m[key] for m in by[label][n]])
-                ratio.append(v / r if r > 0 else np.nan)
+                ratio.append(v if ref_zero else (v / r if r > 0 else np.nan))
+            if ref_zero and not np.any(np.asarray(ratio) > 0):
+                continue
             ax.plot(ns, ratio, marker="o", label=label)
-        ax.set_title(f"{name} energy / {ref}", fontsize=9)
+        # normalised by HJB_1 as in Fig. 5, unless HJB_1 spends none of it (then per UAV, absolute)
+        ax.set_title(f"{name} per UAV ({ref} spends none)" if ref_zero else f"{name} energy / {ref}", fontsize=9)
         ax.set_xlabel("N")
         ax.set_yscale("log")
         ax.legend(fontsize=7)
