@@ -1,0 +1,37 @@
+"""Smoke test of `mfg-swarm bench --quick` (issue 8): it runs and writes valid JSON.
+No timing is asserted here: the figures depend on the machine (docs/benchmarks.md)."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from mfg_swarm.bench import SECTIONS, format_table, run_bench
+
+
+def test_quick_bench_writes_valid_json(tmp_path):
+    # given the quick settings, when the step and simulator sections run through the CLI
+    out = tmp_path / "b"
+    p = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "bench", "--out", str(out), "--quick", "--only", "step,sim"],
+                       capture_output=True, text=True, timeout=120)
+    # then it succeeds, prints the table and writes bench.json with every case
+    assert p.returncode == 0, p.stderr
+    assert "Controller step, one vehicle" in p.stdout and "growth exponent" in p.stdout
+    res = json.loads((out / "bench.json").read_text())
+    assert res["quick"] is True and res["machine"]["nproc"] >= 1
+    labels = [r["label"] for r in res["step"]]
+    assert len(labels) == 12 and any("24 neighbours" in x for x in labels) and any("K=5, N=81" in x for x in labels)
+    for r in res["step"]:
+        assert 0 < r["p50_ms"] <= r["p99_ms"] and r["p99_frac_dt"] == pytest.approx(r["p99_ms"] / 1e3 / r["dt_s"])
+    pts = res["sim"]["points"]
+    assert {(r["mode"], r["n"]) for r in pts} == {("mfg", 25), ("mfg", 81), ("hjb", 25), ("hjb", 81)}
+    assert all(r["status"] == "ok" and r["wall_s"] > 0 and r["peak_rss_mb"] > 0 for r in pts)
+    assert set(res["sim"]["exponent"]) == {"mfg", "hjb"}
+    assert format_table(res)
+
+
+def test_unknown_section_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown bench sections"):
+        run_bench(tmp_path, quick=True, only=("nope",))
+    assert "latency" in SECTIONS
