@@ -81,7 +81,7 @@ class _DefaultBase:
         keep = ~np.isin(sensed.owner.astype(np.int64) * big + sensed.ids, heard.owner.astype(np.int64) * big + heard.ids)
         return Neighbours(sensed.states[keep], sensed.owner[keep], sensed.ids[keep])
 
-    def _unplanned(self, sensed_states: np.ndarray) -> np.ndarray:
+    def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """(m,) bool: sensed vehicles the controller did not expect (HJB_d: none known)."""
         return np.zeros(sensed_states.shape[0], dtype=bool)
 
@@ -90,7 +90,7 @@ class _DefaultBase:
         if not bp.enabled:
             return cap_norm(a_nom, a_max)
         sn = self._not_heard(_sensed(obs), obs.neighbours)
-        unplanned = self._unplanned(sn.states)
+        unplanned = self._unplanned(sn.states, sn.ids)
         da = backstop_acc(own, sn.states[~unplanned], sn.owner[~unplanned], bp)
         if np.any(unplanned):
             sp = self._spacing_m()
@@ -134,14 +134,23 @@ class DefaultMFGController(_DefaultBase):
     def _spacing_m(self) -> float:
         return self.plan.spacing_m
 
-    def _unplanned(self, sensed_states: np.ndarray) -> np.ndarray:
+    def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """Sensed vehicles farther than plan_mismatch_m from every plan particle, in the state
         metric |dr|^2 + (plan_mismatch_s |dv|)^2 (the plan -
         the same on every UAV - says where everyone should be; no communication needed)."""
         if sensed_states.shape[0] == 0:
             return np.zeros(0, dtype=bool)
         w = np.array([1.0, 1.0, self.preset.backstop.plan_mismatch_s, self.preset.backstop.plan_mismatch_s])
-        d, _ = cKDTree(self.plan.states * w).query(sensed_states * w, k=1)
+        q = sensed_states
+        if ids is not None and len(ids) == q.shape[0]:
+            # the same vehicle is sensed by many rows: query each distinct state once (the same distance),
+            # after checking that every row of an id carries the same state (else query them all)
+            _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+            inv = inv.reshape(-1)
+            if np.array_equal(q[first][inv], q):
+                d, _ = cKDTree(self.plan.states * w).query(q[first] * w, k=1)
+                return (d > self.preset.backstop.plan_mismatch_m)[inv]
+        d, _ = cKDTree(self.plan.states * w).query(q * w, k=1)
         return d > self.preset.backstop.plan_mismatch_m
 
     # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
@@ -149,17 +158,22 @@ class DefaultMFGController(_DefaultBase):
         tp = self.preset.tracking
         x = self.plan.states
         tree = cKDTree(x[:, 0:2])
-        lists = tree.query_ball_point(own[:, 0:2], tp.phi_g_radius_m)
-        rows, cols = [], []
-        for r, lst in enumerate(lists):
-            js = sorted(j for j in lst if j != self.own_index[r])
-            rows.extend([r] * len(js)); cols.extend(js)
-        if not cols:
+        lists = tree.query_ball_point(own[:, 0:2], tp.phi_g_radius_m, return_sorted=True)
+        # (row, particle) pairs in row order, particles ascending, own particle left out (vectorised; same order
+        # as sorting each row's list)
+        lens = np.fromiter((len(lst) for lst in lists), dtype=np.int64, count=len(lists))
+        cols = np.fromiter((j for lst in lists for j in lst), dtype=np.int64, count=int(lens.sum()))
+        rows = np.repeat(np.arange(len(lists), dtype=np.int64), lens)
+        keep = cols != self.own_index[rows]
+        rows, cols = rows[keep], cols[keep]
+        if cols.size == 0:
             return np.zeros(self.n), 0
-        rows = np.asarray(rows, dtype=np.int64); cols = np.asarray(cols, dtype=np.int64)
         k = cs_kernel(own[rows], x[cols], self.preset.cost)
         if tp.learn_fpk:
-            sig = self.sigma_F.value(x[cols] - centroid[None, :])
+            # sigma_F is elementwise per row: evaluate it once per particle used, then gather per pair, in the
+            # memory layout (Fortran order) that sigma_F.value returns, so that einsum sums in the same order
+            used, pos = np.unique(cols, return_inverse=True)
+            sig = np.asfortranarray(self.sigma_F.value(x[used] - centroid[None, :])[pos.reshape(-1)])
             w = np.maximum(np.einsum("pm,pm->p", sig, self.w_F[rows]), 0.0)
         else:
             w = np.ones(cols.size)
