@@ -78,7 +78,10 @@ class _DefaultBase:
         if heard is None or heard.states.shape[0] == 0 or sensed.states.shape[0] == 0 or sensed.ids is None or heard.ids is None:
             return sensed
         big = np.int64(1) << 32
-        keep = ~np.isin(sensed.owner.astype(np.int64) * big + sensed.ids, heard.owner.astype(np.int64) * big + heard.ids)
+        sk = sensed.owner.astype(np.int64) * big + sensed.ids
+        hk = np.sort(heard.owner.astype(np.int64) * big + heard.ids)
+        at = np.minimum(np.searchsorted(hk, sk), hk.size - 1)
+        keep = hk[at] != sk          # = ~np.isin(sk, hk), by binary search (np.isin's hash-based unique is far slower here)
         return Neighbours(sensed.states[keep], sensed.owner[keep], sensed.ids[keep])
 
     def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:

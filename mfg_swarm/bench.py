@@ -121,11 +121,21 @@ import json, resource, sys, time
 from mfg_autopilot.params import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, simulate
+import numpy as np
+import mfg_swarm.sim as S
+marks = []
+class _Marks:                      # replaces the progress bar: a timestamp after every control step
+    def __init__(self, total, enabled): pass
+    def update(self, k): marks.append(time.perf_counter())
+S._Progress = _Marks
 a = json.loads(sys.argv[1])
 cfg = SimConfig(scenario=make_scenario(a["scenario"], a["n"]), mode=a["mode"], preset=preset_by_name(a["preset"]),
                 seed=0, steps=a["steps"], range_m=a["range_m"])
 t = time.perf_counter(); _, m = simulate(cfg, progress=False); wall = time.perf_counter() - t
-print(json.dumps({"wall_s": wall, "cpu_s": time.process_time(), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+d = np.diff(marks)
+print(json.dumps({"setup_and_first_step_s": marks[0] - t, "step_s_median": float(np.median(d)) if d.size else None,
+                  "step_s_p90": float(np.percentile(d, 90)) if d.size else None, "after_loop_s": t + wall - marks[-1],
+                  "wall_s": wall, "cpu_s": time.process_time(), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "collision_pairs": m["collision_pairs"], "arrived_fraction": m["arrived_fraction"]}))
 """
 
@@ -156,6 +166,9 @@ def _slope(points: list[dict]) -> float | None:
     return math.log(b["wall_s"] / a["wall_s"]) / math.log(b["n"] / a["n"])
 
 
+_SHORT_STEPS = 10
+
+
 def bench_sim(quick: bool = False, timeout_s: float = 900.0, ns: tuple[int, ...] | None = None,
               repeats: int | None = None) -> dict:
     """Default preset, 200 simulated seconds = 400 steps at dt = 0.5 s (quick: 20 steps)."""
@@ -175,6 +188,13 @@ def bench_sim(quick: bool = False, timeout_s: float = 900.0, ns: tuple[int, ...]
                 w = [r["wall_s"] for r in ok]
                 rec.update(wall_s=float(np.median(w)), wall_min_s=min(w), wall_max_s=max(w), repeats=len(ok),
                            peak_rss_mb=float(max(r["peak_rss_mb"] for r in ok)))
+            if rec["status"] == "timeout":
+                # what one step costs at this N: a short run (set-up included), extrapolated to the full run
+                short = _sim_point(n, mode, "default", _SHORT_STEPS, timeout_s)
+                if short["status"] == "ok":
+                    rec["short_run"] = short
+                    rec["extrapolated_wall_s"] = (short["setup_and_first_step_s"] + (steps - 1) * short["step_s_median"]
+                                                  + short["after_loop_s"])
             pts.append(rec)
             out["points"].append(rec)
             if rec["status"] != "ok":
@@ -284,7 +304,7 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
 
 def bench_swarm(out: Path, quick: bool = False) -> list[dict]:
     ns = (4, 9) if quick else (4, 9, 25, 49, 81)
-    steps = 20 if quick else 120
+    steps = 20 if quick else 60          # 30 simulated s at dt = 0.5 s
     res = []
     for n in ns:
         res.append(_swarm_point(n, steps, True, out / f"swarm-n{n}"))
@@ -338,8 +358,13 @@ def format_table(res: dict) -> str:
         L.append(f"{'mode':5s} {'N':>6s} {'wall s':>9s} {'min':>8s} {'max':>8s} {'peak MB':>8s} status")
         for r in s["points"]:
             wall = f"{r['wall_s']:9.2f}" if r.get("wall_s") is not None else f"{'>' + str(r.get('timeout_s')):>9s}"
+            extra = ""
+            if "short_run" in r:
+                sr = r["short_run"]
+                extra = (f" ({sr['steps']}-step run: set-up + step 1 {sr['setup_and_first_step_s']:.1f} s, then "
+                         f"{sr['step_s_median']:.2f} s/step, peak {sr['peak_rss_mb']:.0f} MB -> ~{r['extrapolated_wall_s']:.0f} s for {s['steps']})")
             L.append(f"{r['mode']:5s} {r['n']:6d} {wall} {r.get('wall_min_s', float('nan')):8.2f} {r.get('wall_max_s', float('nan')):8.2f} "
-                     f"{r.get('peak_rss_mb', float('nan')):8.0f} {r['status']}")
+                     f"{r.get('peak_rss_mb', float('nan')):8.0f} {r['status']}{extra}")
         L.append("growth exponent (log-log slope, two largest N): " + ", ".join(
             f"{k} {v:.2f}" if v is not None else f"{k} n/a" for k, v in s["exponent"].items()))
         pm = s["paper_mfg"]
