@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mavlink_bridge import AdsbVehicle
 from mavlink_bridge.adsb import (
@@ -39,6 +38,8 @@ DEFAULT_HOME_ALT_AMSL_M = 488.0
 def sensed_pairs(states_f32: np.ndarray, range_m: float) -> np.ndarray:
     """Undirected pairs (p, 2), i < j, of vehicles within ``range_m`` of each other.
     states_f32: (n, 4) float32-rounded true states in vehicle-id order."""
+    from scipy.spatial import cKDTree      # here, not at module level: a mock vehicle imports this module but
+                                           # never calls this (the world does); scipy.spatial is ~0.6 s of its start-up
     s = np.asarray(states_f32, dtype=np.float64)
     if s.shape[0] < 2:
         return np.zeros((0, 2), dtype=np.int64)
