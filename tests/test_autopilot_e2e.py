@@ -135,3 +135,20 @@ def test_vehicle_restart_is_seen_and_the_handshake_is_redone(tmp_path):
     i = whats.index("vehicle_lost")
     assert whats[i:].index("vehicle_back") < whats[i:].index("armed") < whats[i:].index("offboard")
     assert [r for r in _records(log) if r["type"] == "end"][0]["reason"] == "mission_time"
+
+
+def test_one_controller_flies_one_mock_from_the_source_to_its_destination(tmp_path):
+    """Default preset, lockstep, 70 simulated s: from the paper's source (150, 100) m into its
+    slot (the destination site itself for a swarm of one), as the vehicle's own tlog shows."""
+    port = free_udp_port()
+    mock = [PYTHON, "-m", "mock_vehicle.cli", "--onboard-url", f"udpout:127.0.0.1:{port}", "--gcs-url", "none",
+            "--initial-pos-m", "150,100", "--lockstep", "--dt-s", "0.5", "--tlog", str(tmp_path / "v.tlog")]
+    with spawn(mock, log_dir=tmp_path, name="mock"):
+        p = subprocess.run(_autopilot(f"udpin:127.0.0.1:{port}", "--lockstep", "--steps", "140", "--preset", "default",
+                                      "--log", str(tmp_path / "c.jsonl")), capture_output=True, text=True, timeout=180)
+        assert p.returncode == 0, p.stderr[-2000:]
+    pos = [(r.msg.time_boot_ms, r.msg.x_m, r.msg.y_m) for _, r in read_tlog(tmp_path / "v.tlog") if isinstance(r.msg, LocalPositionNed)]
+    t_end, x, y = max(pos)
+    assert t_end == 140 * 500 and np.hypot(x, y) < 1.0, (t_end, x, y)
+    end = [r for r in _records(tmp_path / "c.jsonl") if r["type"] == "end"][0]
+    assert end["reason"] == "mission_time" and end["destination_m"] == [0.0, 0.0]
