@@ -208,3 +208,21 @@ def _vehicle_main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(_vehicle_main())
+
+
+import psutil  # noqa: E402
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def no_process_left_behind():
+    """Autouse in the Zenoh test modules that import it: fail a test that leaves a child process."""
+    yield
+    me = psutil.Process()
+    deadline = time.monotonic() + 5
+    while me.children(recursive=True) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = me.children(recursive=True)
+    for c in left:
+        c.kill()
+    assert not left, f"processes left behind: {[c.cmdline() for c in left]}"

@@ -27,17 +27,7 @@ XS = [0.0, 1.0, 2.0, 3.0, 10.0]
 NEIGHBOURS = {0: [1], 1: [0, 2], 2: [1, 3], 3: [2], 4: []}
 
 
-@pytest.fixture(autouse=True)
-def no_process_left_behind():
-    yield
-    me = psutil.Process()
-    deadline = time.monotonic() + 5
-    while me.children(recursive=True) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    left = me.children(recursive=True)
-    for c in left:
-        c.kill()
-    assert not left, f"processes left behind: {[c.cmdline() for c in left]}"
+from _zenoh_helpers import no_process_left_behind  # noqa: E402,F401  (autouse fixture)
 
 
 @pytest.fixture

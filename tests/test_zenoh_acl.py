@@ -44,17 +44,7 @@ SWARM = "demo"  # the swarm the example ACL is written for; each test has its ow
 FORGED_X_M = 666.0
 
 
-@pytest.fixture(autouse=True)
-def no_process_left_behind():
-    yield
-    me = psutil.Process()
-    deadline = time.monotonic() + 5
-    while me.children(recursive=True) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    left = me.children(recursive=True)
-    for c in left:
-        c.kill()
-    assert not left, f"processes left behind: {[c.cmdline() for c in left]}"
+from _zenoh_helpers import no_process_left_behind  # noqa: E402,F401  (autouse fixture)
 
 
 def wait_until(pred, timeout_s: float, what: str):

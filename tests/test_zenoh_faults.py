@@ -25,17 +25,7 @@ import zenoh_faults as zf
 pytestmark = pytest.mark.e2e
 
 
-@pytest.fixture(autouse=True)
-def no_process_left_behind():
-    yield
-    me = psutil.Process()
-    deadline = time.monotonic() + 5
-    while me.children(recursive=True) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    left = me.children(recursive=True)
-    for c in left:
-        c.kill()
-    assert not left, f"processes left behind: {[c.cmdline() for c in left]}"
+from _zenoh_helpers import no_process_left_behind  # noqa: E402,F401  (autouse fixture)
 
 
 @pytest.fixture
