@@ -40,6 +40,30 @@ def find_runs(root: Path) -> list[Path]:
     return sorted(p.parent for p in root.rglob("metrics.json") if (p.parent / "trajectories.npz").exists())
 
 
+def _zoom_inset(ax, pos_k_m: np.ndarray, dest_m: np.ndarray, hit: list[int], extent_m: float) -> None:
+    """A to-scale close-up of the swarm at one snapshot (a 9-UAV swarm is a dot on a 150 m plot).
+    Drawn only when the swarm spans less than a fifth of the whole plot."""
+    ok = np.all(np.isfinite(pos_k_m), axis=1)
+    if not np.any(ok):
+        return
+    p = pos_k_m[ok]
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    span = max(float(np.max(hi - lo)), 2.0)
+    if span > 0.2 * extent_m:
+        return
+    c, half = 0.5 * (lo + hi), 0.6 * span
+    ins = ax.inset_axes([0.58, 0.04, 0.40, 0.40])
+    ins.scatter(pos_k_m[:, 1], pos_k_m[:, 0], s=5, color="C0", zorder=3)
+    if hit:
+        ins.scatter(pos_k_m[hit, 1], pos_k_m[hit, 0], s=6, color="C3", zorder=4)
+    ins.scatter(dest_m[:, 1], dest_m[:, 0], marker="x", s=6, color="k", zorder=2)
+    ins.set_xlim(c[1] - half, c[1] + half)
+    ins.set_ylim(c[0] - half, c[0] + half)
+    ins.set_aspect("equal")
+    ins.tick_params(labelsize=5, length=2, pad=1)
+    ins.set_title(f"{2 * half:.0f} m", fontsize=6, pad=1)
+
+
 def plot_run(run_dir: Path, n_snapshots: int = 4) -> list[Path]:
     """Fig. 3 and Fig. 4 for one run; returns the PNG paths."""
     run_dir = Path(run_dir)
@@ -62,6 +86,7 @@ def plot_run(run_dir: Path, n_snapshots: int = 4) -> list[Path]:
             ax.scatter(pos[k, hit, 1], pos[k, hit, 0], s=10, color="C3", zorder=4)
         ax.scatter(traj.dest_m[:, 1], traj.dest_m[:, 0], marker="x", s=12, color="k", zorder=2)
         ax.set_title(f"t = {traj.t_s[k]:.0f} s", fontsize=9)
+        _zoom_inset(ax, pos[k], traj.dest_m, hit, extent_m=float(np.max(hi - lo)))
         ax.set_xlim(lo[1] - pad, hi[1] + pad)
         ax.set_ylim(lo[0] - pad, hi[0] + pad)
         ax.set_xlabel("y (east), m", fontsize=8)
