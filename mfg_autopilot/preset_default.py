@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from . import controller
 from .backstop import apply_backstop, backstop_acc
-from .controller import Neighbours, Observation
+from .controller import HeardSummary, Neighbours, Observation
 from .costs import cs_kernel
 from .default_params import DefaultPreset
 from .features import make_sigma_F, make_sigma_H
@@ -257,20 +257,35 @@ class DefaultHJBController(_DefaultBase):
         self._radius = np.full(self.n, self.preset.hjb_repulsion.radius_m)
         self._slots_known = False
 
-    def _init_slots(self, own: np.ndarray, heard: Neighbours) -> None:
+    def _init_slots(self, own: np.ndarray, heard: HeardSummary) -> None:
         """Slot = site + own offset from the centroid of {own, heard at the first step};
         repulsion radius from the nearest heard neighbour (slot spacing)."""
         n, rp = self.n, self.preset.hjb_repulsion
-        cnt = 1.0 + heard.counts(n)
-        cen = np.stack([own[:, d] + np.bincount(heard.owner, heard.states[:, d], n) for d in range(2)], axis=1) / cnt[:, None]
+        cnt = 1.0 + heard.count
+        cen = np.stack([own[:, d] + heard.pos_sum_m[:, d] for d in range(2)], axis=1) / cnt[:, None]
         if self.preset.use_slots:
             self._dest = self.destination_site_m + own[:, 0:2] - cen
-        near = np.full(n, np.inf)
-        if heard.states.shape[0]:
-            dist = np.linalg.norm(heard.states[:, 0:2] - own[heard.owner, 0:2], axis=1)
-            np.minimum.at(near, heard.owner, dist)
-        self._radius = np.minimum(rp.radius_m, rp.slot_fraction * near)
+        self._radius = np.minimum(rp.radius_m, rp.slot_fraction * heard.nearest_m)
         self._slots_known = True
+
+    @property
+    def needs_heard_summary(self) -> bool:
+        """The first step derives slots and radii from everything heard (controller.HeardSummary)."""
+        return not self._slots_known
+
+    def heard_cutoff_m(self, step: int, states: np.ndarray) -> float:
+        """Heard states farther than this cannot change any row's action (controller.Controller):
+        the repulsion is exactly zero for |d| > R + horizon |u| (planner.repulsion_acc), |u| <= 2 max|v|;
+        the backstop's exclusion of heard vehicles needs the heard ones within the sensor range."""
+        p, rp = self.preset, self.preset.hjb_repulsion
+        cut = 0.0
+        if p.use_repulsion and states.shape[0]:
+            vmax = float(np.sqrt(np.max(np.einsum("nd,nd->n", states[:, 2:4], states[:, 2:4]))))
+            rad = float(np.max(self._radius)) if self._slots_known else rp.radius_m
+            cut = rad + 2.0 * rp.horizon_s * vmax + 1e-6
+        if self.sensor_range_m is not None:
+            cut = max(cut, float(self.sensor_range_m))
+        return cut
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """Not used: HJB_d hears its neighbours at every step instead."""
@@ -280,7 +295,7 @@ class DefaultHJBController(_DefaultBase):
         own = np.asarray(obs.own_states, dtype=float)
         heard = obs.neighbours if obs.neighbours is not None else Neighbours.empty()
         if not self._slots_known:
-            self._init_slots(own, heard)
+            self._init_slots(own, obs.heard_summary if obs.heard_summary is not None else HeardSummary.of(own, heard, self.n))
         s_rel = own - np.concatenate([self._dest, np.zeros_like(self._dest)], axis=1)
         a_goal = goal_acc(s_rel, p.guidance, p.cost)
         a_rep = (repulsion_from_neighbours(own, heard.states, heard.owner, self._radius, p.hjb_repulsion)
