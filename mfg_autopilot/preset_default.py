@@ -42,6 +42,8 @@ __all__ = ["PRESET", "DefaultMFGController", "DefaultHJBController"]
 
 PRESET = DefaultPreset()
 
+_PAIR_BLOCK = 16384       # (row, particle) pairs per block in _phi_G's FPK weighting
+
 
 def _sensed(obs: Observation) -> Neighbours:
     return obs.sensed if obs.sensed is not None else Neighbours.empty()
@@ -148,8 +150,19 @@ class DefaultMFGController(_DefaultBase):
         if ids is not None and len(ids) == q.shape[0]:
             # the same vehicle is sensed by many rows: query each distinct state once (the same distance),
             # after checking that every row of an id carries the same state (else query them all)
-            _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-            inv = inv.reshape(-1)
+            # (distinct ids ascending and each row's rank among them, as np.unique gives them, in O(m + max id)
+            # instead of a sort; the representative row of an id is its last one - all carry the same state)
+            ids = np.asarray(ids, dtype=np.int64)
+            if ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
+                present = np.zeros(int(ids.max()) + 1, dtype=bool)
+                present[ids] = True
+                rep = np.empty(present.size, dtype=np.int64)
+                rep[ids] = np.arange(ids.size)
+                first = rep[present]
+                inv = (np.cumsum(present) - 1)[ids]
+            else:
+                _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+                inv = inv.reshape(-1)
             if np.array_equal(q[first][inv], q):
                 d, _ = cKDTree(self.plan.states * w).query(q[first] * w, k=1)
                 return (d > self.preset.backstop.plan_mismatch_m)[inv]
@@ -160,24 +173,32 @@ class DefaultMFGController(_DefaultBase):
     def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
         tp = self.preset.tracking
         x = self.plan.states
-        tree = cKDTree(x[:, 0:2])
-        lists = tree.query_ball_point(own[:, 0:2], tp.phi_g_radius_m, return_sorted=True)
-        # (row, particle) pairs in row order, particles ascending, own particle left out (vectorised; same order
-        # as sorting each row's list)
-        lens = np.fromiter((len(lst) for lst in lists), dtype=np.int64, count=len(lists))
-        cols = np.fromiter((j for lst in lists for j in lst), dtype=np.int64, count=int(lens.sum()))
-        rows = np.repeat(np.arange(len(lists), dtype=np.int64), lens)
+        # (row, particle) pairs within the radius (k-d tree against k-d tree, all in C), in row order with
+        # particles ascending (the order of each row's sorted query_ball_point list), own particle left out
+        near = cKDTree(own[:, 0:2]).sparse_distance_matrix(cKDTree(x[:, 0:2]), tp.phi_g_radius_m, output_type="ndarray")
+        rows, cols = near["i"].astype(np.int64), near["j"].astype(np.int64)
+        order = np.argsort(rows * np.int64(x.shape[0]) + cols)      # distinct keys: any sort gives one order
+        rows, cols = rows[order], cols[order]
         keep = cols != self.own_index[rows]
         rows, cols = rows[keep], cols[keep]
         if cols.size == 0:
             return np.zeros(self.n), 0
         k = cs_kernel(own[rows], x[cols], self.preset.cost)
         if tp.learn_fpk:
-            # sigma_F is elementwise per row: evaluate it once per particle used, then gather per pair, in the
-            # memory layout (Fortran order) that sigma_F.value returns, so that einsum sums in the same order
-            used, pos = np.unique(cols, return_inverse=True)
-            sig = np.asfortranarray(self.sigma_F.value(x[used] - centroid[None, :])[pos.reshape(-1)])
-            w = np.maximum(np.einsum("pm,pm->p", sig, self.w_F[rows]), 0.0)
+            # sigma_F is elementwise per row: evaluate it once per particle used (the used ones ascending, as
+            # np.unique gives them), then gather per pair, in the memory layout (Fortran order) that
+            # sigma_F.value returns, so that einsum sums in the same order; in blocks of pairs (each pair's
+            # sum is unchanged; memory O(block M_F) instead of O(pairs M_F))
+            present = np.bincount(cols, minlength=x.shape[0]) > 0
+            used = np.flatnonzero(present)
+            pos = (np.cumsum(present) - 1)[cols]
+            sig_used = self.sigma_F.value(x[used] - centroid[None, :])
+            w = np.empty(cols.size)
+            for b in range(0, cols.size, _PAIR_BLOCK):
+                e = b + _PAIR_BLOCK
+                sig = np.asfortranarray(sig_used[pos[b:e]])
+                w[b:e] = np.einsum("pm,pm->p", sig, self.w_F[rows[b:e]])
+            w = np.maximum(w, 0.0)
         else:
             w = np.ones(cols.size)
         tot = np.bincount(rows, w, self.n)
@@ -275,14 +296,16 @@ class DefaultHJBController(_DefaultBase):
 
     def heard_cutoff_m(self, step: int, states: np.ndarray) -> float:
         """Heard states farther than this cannot change any row's action (controller.Controller):
-        the repulsion is exactly zero for |d| > R + horizon |u| (planner.repulsion_acc), |u| <= 2 max|v|;
+        the repulsion is exactly zero for |d| > R + horizon |u| (planner.repulsion_acc), |u| <= 2 max|v - c|;
         the backstop's exclusion of heard vehicles needs the heard ones within the sensor range."""
         p, rp = self.preset, self.preset.hjb_repulsion
         cut = 0.0
         if p.use_repulsion and states.shape[0]:
-            vmax = float(np.sqrt(np.max(np.einsum("nd,nd->n", states[:, 2:4], states[:, 2:4]))))
+            v = states[:, 2:4]
+            c = 0.5 * (v.min(axis=0) + v.max(axis=0))          # |v_j - v_i| <= 2 max_k |v_k - c| for any c
+            spread = float(np.max(np.linalg.norm(v - c[None, :], axis=1)))
             rad = float(np.max(self._radius)) if self._slots_known else rp.radius_m
-            cut = rad + 2.0 * rp.horizon_s * vmax + 1e-6
+            cut = rad + 2.0 * rp.horizon_s * spread + 1e-6
         if self.sensor_range_m is not None:
             cut = max(cut, float(self.sensor_range_m))
         return cut
