@@ -113,6 +113,9 @@ class Controller(Protocol):
     #     only the heard states within it, provided it gives Observation.heard_summary over
     #     all of them when the controller's ``needs_heard_summary`` is true; the action is the same as with the complete list (up to the
     #     summation order of the terms that remain)."""
+    # def sensed_cutoff_m(self, states: np.ndarray) -> float | None:
+    #     """Likewise for the proximity sensor: sensed vehicles farther than this cannot change
+    #     any row's action; the caller may deliver only those within it in Observation.sensed."""
 
     def weights(self) -> dict[str, np.ndarray]:
         """Learned weights for logging (e.g. {"w_H": (n, 54), "w_F": (n, 69)})."""

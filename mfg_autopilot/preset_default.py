@@ -73,6 +73,26 @@ class _DefaultBase:
     def _spacing_m(self) -> float:
         return float("inf")
 
+    # sensor quantisation (ADSB_VEHICLE: 1e-7 deg ~ 1.1 cm per axis, 1 cm/s and 0.01 deg of the velocity) is
+    # covered by these margins in sensed_cutoff_m
+    _SENSED_POS_MARGIN_M = 0.05
+    _SENSED_VEL_MARGIN_M_S = 0.02
+
+    def sensed_cutoff_m(self, states: np.ndarray) -> float | None:
+        """For a bank holding every vehicle (observed states (N, 4)): sensed vehicles farther than this
+        cannot change any row's action, so a simulator may deliver only those within it (None: all
+        within the sensor range). The backstop acts only on a predicted closest approach rho below its
+        trigger (at most max(trigger_m, unplanned_trigger_m)), and rho >= |d| - horizon |u| with
+        |u| <= 2 max_k |v_k - c| (c the centre of the velocity box), plus the sensor's quantisation."""
+        bp = self.preset.backstop
+        if not bp.enabled or states.shape[0] == 0:
+            return None
+        v = states[:, 2:4]
+        c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        spread = float(np.max(np.linalg.norm(v - c[None, :], axis=1)))
+        trig = max(bp.trigger_m, bp.unplanned_trigger_m)
+        return trig + 2.0 * bp.horizon_s * (spread + self._SENSED_VEL_MARGIN_M_S) + self._SENSED_POS_MARGIN_M
+
     @staticmethod
     def _not_heard(sensed: Neighbours, heard: Neighbours | None) -> Neighbours:
         """The sensed vehicles a row did not also hear this step (HJB_d's repulsion already

@@ -223,7 +223,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         if sensor_range_m is not None and n > 1:
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
             # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md)
-            owner, other = sensed_rows(sensed_pairs(obs, sensor_range_m))
+            # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m, if any)
+            reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
+            owner, other = sensed_rows(sensed_pairs(obs, sensor_range_m if reach is None else min(sensor_range_m, reach)))
             seen = np.flatnonzero(np.bincount(other, minlength=n))     # = np.unique(other), without a sort
             q = np.zeros_like(obs)
             q[seen] = quantise_sensed_states(obs[seen])

@@ -96,3 +96,21 @@ def test_heard_cutoff_bounds_the_repulsion_reach():
     # then it covers the repulsion radius plus the horizon at twice the largest speed, and the sensor range
     assert cut >= rp.radius_m + 2.0 * rp.horizon_s * 2.5      # |v_j - v_i| <= 2 * half the velocity box diagonal (5 m/s)
     assert cut >= DEFAULT.backstop.sensor_range_m
+
+
+@pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
+                                                   ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
+def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
+    # given runs in which the backstop acts (dense formation, a failed vehicle)
+    import mfg_autopilot.preset_default as pd
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode=mode, preset=DEFAULT, seed=0, steps=160,
+                    range_m=1.0 if mode == "hjb" else None, **extra)       # HJB_1: sensed but not heard vehicles
+    # when the simulator delivers what the sensor sees within its range, and only within sensed_cutoff_m
+    t_cut, m_cut = simulate(cfg, progress=False)
+    monkeypatch.setattr(pd._DefaultBase, "sensed_cutoff_m", lambda self, states: None)
+    t_all, m_all = simulate(cfg, progress=False)
+    # then the flights are the same bit for bit
+    assert m_all["backstop_activations"] > 0
+    assert m_cut["backstop_activations"] == m_all["backstop_activations"]
+    np.testing.assert_array_equal(t_cut.acc_m_s2, t_all.acc_m_s2)
+    np.testing.assert_array_equal(t_cut.pos_m, t_all.pos_m)
