@@ -158,7 +158,7 @@ def hear(obs: np.ndarray, range_m: float, ctrl, step: int) -> tuple[Neighbours, 
     tree = cKDTree(pts)
     cut = ctrl.heard_cutoff_m(step, obs) if hasattr(ctrl, "heard_cutoff_m") else None
     if cut is not None and cut < range_m:
-        counts = tree.query_ball_point(pts, range_m, return_length=True).astype(np.int64) - 1   # self is within range
+        counts = tree.query_ball_point(pts, range_m, return_length=True, workers=-1).astype(np.int64) - 1   # self is within range
         if int(counts.sum()) > FULL_HEARD_MAX_STATES:
             heard = Neighbours.from_pairs(obs, tree.query_pairs(cut, output_type="ndarray"))
             summary = (heard_summary_by_tree(tree, pts, range_m, counts)
