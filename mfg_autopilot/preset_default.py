@@ -42,8 +42,6 @@ __all__ = ["PRESET", "DefaultMFGController", "DefaultHJBController"]
 
 PRESET = DefaultPreset()
 
-_PAIR_BLOCK = 16384       # (row, particle) pairs per block in _phi_G's FPK weighting
-
 
 def _sensed(obs: Observation) -> Neighbours:
     return obs.sensed if obs.sensed is not None else Neighbours.empty()
@@ -206,18 +204,18 @@ class DefaultMFGController(_DefaultBase):
         k = cs_kernel(own[rows], x[cols], self.preset.cost)
         if tp.learn_fpk:
             # sigma_F is elementwise per row: evaluate it once per particle used (the used ones ascending, as
-            # np.unique gives them), then gather per pair, in the memory layout (Fortran order) that
-            # sigma_F.value returns, so that einsum sums in the same order; in blocks of pairs (each pair's
-            # sum is unchanged; memory O(block M_F) instead of O(pairs M_F))
+            # np.unique gives them), then gather per pair
             present = np.bincount(cols, minlength=x.shape[0]) > 0
             used = np.flatnonzero(present)
             pos = (np.cumsum(present) - 1)[cols]
-            sig_used = self.sigma_F.value(x[used] - centroid[None, :])
-            w = np.empty(cols.size)
-            for b in range(0, cols.size, _PAIR_BLOCK):
-                e = b + _PAIR_BLOCK
-                sig = np.asfortranarray(sig_used[pos[b:e]])
-                w[b:e] = np.einsum("pm,pm->p", sig, self.w_F[rows[b:e]])
+            # per pair m_hat = sum_m sig[m] w_F[m], summed sequentially over m = 0..M-1 (what einsum does with the
+            # pair axis contiguous; tests/test_scaling.py checks the two agree bit for bit), one feature at a time
+            # from transposed tables: no (pairs, M_F) temporaries
+            sigT = np.ascontiguousarray(self.sigma_F.value(x[used] - centroid[None, :]).T)      # (M_F, used)
+            wT = np.ascontiguousarray(self.w_F.T)                                              # (M_F, n)
+            w = np.zeros(cols.size)
+            for m in range(sigT.shape[0]):
+                w += sigT[m][pos] * wT[m][rows]
             w = np.maximum(w, 0.0)
         else:
             w = np.ones(cols.size)

@@ -114,3 +114,18 @@ def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch
     assert m_cut["backstop_activations"] == m_all["backstop_activations"]
     np.testing.assert_array_equal(t_cut.acc_m_s2, t_all.acc_m_s2)
     np.testing.assert_array_equal(t_cut.pos_m, t_all.pos_m)
+
+
+def test_phi_G_feature_loop_sums_like_the_einsum_it_replaced():
+    # given per-particle sigma_F rows, per-row w_F and (row, particle) pairs as _phi_G builds them
+    rng = np.random.default_rng(5)
+    sig = np.asfortranarray(rng.standard_normal((700, 69)))      # sigma_F.value's layout
+    wF = rng.standard_normal((500, 69))
+    pos, rows = rng.integers(0, 700, 20000), np.sort(rng.integers(0, 500, 20000))
+    # when m_hat per pair is summed one feature at a time (DefaultMFGController._phi_G)
+    sigT, wT = np.ascontiguousarray(sig.T), np.ascontiguousarray(wF.T)
+    w = np.zeros(pos.size)
+    for m in range(69):
+        w += sigT[m][pos] * wT[m][rows]
+    # then it is bit-identical to the former einsum over the gathered Fortran-order block
+    np.testing.assert_array_equal(w, np.einsum("pm,pm->p", np.asfortranarray(sig[pos]), wF[rows]))
