@@ -22,7 +22,7 @@ from .costs import cs_kernel
 from .learners import HJBLearner, MFGLearner, StepInfo
 from .params import Preset
 
-__all__ = ["Neighbours", "Observation", "Controller", "PaperHJBController", "PaperMFGController", "make_controller", "register"]
+__all__ = ["Neighbours", "HeardSummary", "Observation", "Controller", "PaperHJBController", "PaperMFGController", "make_controller", "register"]
 
 
 @dataclass(frozen=True)
@@ -52,12 +52,37 @@ class Neighbours:
 
 
 @dataclass(frozen=True)
+class HeardSummary:
+    """Aggregates over *every* state each bank row heard this step: count (n,), sum of the
+    heard positions pos_sum_m (n, 2), distance to the nearest heard vehicle nearest_m (n,)
+    (inf if none). Given by a caller that delivers only the heard states within the
+    controller's ``heard_cutoff_m`` (the simulator at large N); :meth:`of` computes it from a
+    complete list (what a vehicle process holds)."""
+
+    count: np.ndarray
+    pos_sum_m: np.ndarray
+    nearest_m: np.ndarray
+
+    @staticmethod
+    def of(own: np.ndarray, heard: Neighbours, n: int) -> "HeardSummary":
+        cnt = heard.counts(n)
+        pos_sum = np.stack([np.bincount(heard.owner, heard.states[:, d], n) for d in range(2)], axis=1)
+        near = np.full(n, np.inf)
+        if heard.states.shape[0]:
+            dist = np.linalg.norm(heard.states[:, 0:2] - own[heard.owner, 0:2], axis=1)
+            np.minimum.at(near, heard.owner, dist)
+        return HeardSummary(cnt, pos_sum, near)
+
+
+@dataclass(frozen=True)
 class Observation:
     step: int
     time_s: float
     own_states: np.ndarray                       # (n, 4) observed, absolute
     neighbours: Neighbours | None = None         # heard this step (HJB_d)
     sensed: Neighbours | None = None             # onboard proximity sensor (no communication)
+    heard_summary: HeardSummary | None = None    # aggregates of everything heard, when ``neighbours`` holds only
+                                                 # the states within the controller's heard_cutoff_m (simulator)
 
 
 class Controller(Protocol):
@@ -79,6 +104,18 @@ class Controller(Protocol):
         ...
 
     def step(self, obs: Observation) -> StepInfo: ...
+
+    # Optional (HJB_d controllers; the simulator uses it when present):
+    # def heard_cutoff_m(self, step: int, states: np.ndarray) -> float | None:
+    #     """For a bank holding every vehicle, whose observed states (N, 4) are ``states``: a
+    #     distance beyond which a heard state cannot change any row's action at this step
+    #     (None: every heard state matters). The caller may then put in Observation.neighbours
+    #     only the heard states within it, provided it gives Observation.heard_summary over
+    #     all of them when the controller's ``needs_heard_summary`` is true; the action is the same as with the complete list (up to the
+    #     summation order of the terms that remain)."""
+    # def sensed_cutoff_m(self, states: np.ndarray) -> float | None:
+    #     """Likewise for the proximity sensor: sensed vehicles farther than this cannot change
+    #     any row's action; the caller may deliver only those within it in Observation.sensed."""
 
     def weights(self) -> dict[str, np.ndarray]:
         """Learned weights for logging (e.g. {"w_H": (n, 54), "w_F": (n, 69)})."""

@@ -38,26 +38,57 @@ from .features import MonomialFeatures, make_sigma_F
 from .model import nominal_drift, optimal_action, saturate
 from .params import Preset
 
-__all__ = ["MeanField", "fit_initial_fpk_weights"]
+__all__ = ["MeanField", "fit_initial_fpk_weights", "kde_at", "KDE_EXACT_MAX_POINTS", "KDE_TRUNCATION_TOL"]
 
 
-def fit_initial_fpk_weights(sigma_F: MonomialFeatures, states_rel: np.ndarray, bandwidth: np.ndarray, ridge: float = 1e-6) -> np.ndarray:
+KDE_EXACT_MAX_POINTS = 1024
+"""Up to this many t = 0 states the KDE of :func:`fit_initial_fpk_weights` is the exact all-pairs sum."""
+
+KDE_TRUNCATION_TOL = 1e-12
+"""Above it, kernels beyond c = sqrt(2 ln(P / tol)) bandwidths are left out: each is < tol / P, so the
+density (a mean over P kernels, peak >= 1 / P) changes by < tol of its peak (docs/mean_field.md)."""
+
+
+def kde_at(Y: np.ndarray, X: np.ndarray, bandwidth: np.ndarray, exact_max_points: int = KDE_EXACT_MAX_POINTS,
+           tol: float = KDE_TRUNCATION_TOL) -> np.ndarray:
+    """Gaussian kernel density of the points X (P, 4) with diagonal bandwidth h (4,), at Y (q, 4):
+    dens(y) = 1/P sum_j exp(-|(y - x_j) / h|^2 / 2), (q,).
+
+    P <= exact_max_points: the exact all-pairs sum (row blocks, O(q P)). Above: a k-d tree in
+    the scaled space keeps the kernels within c = sqrt(2 ln(P / tol)) bandwidths (O((q + P) log P
+    + pairs)); |dens_truncated - dens| < tol / P <= tol * max(dens) when Y contains X."""
+    X = np.asarray(X, dtype=float)
+    Y = np.asarray(Y, dtype=float)
+    h = np.asarray(bandwidth, dtype=float)
+    P = X.shape[0]
+    dens = np.empty(Y.shape[0])
+    if P <= exact_max_points:
+        # in row blocks (memory O(block P) instead of O(q P)); each row's reduction is unchanged
+        block = max(1, int(2**21 // max(P, 1)))
+        for b in range(0, Y.shape[0], block):
+            z = (Y[b:b + block, None, :] - X[None, :, :]) / h
+            dens[b:b + block] = np.exp(-0.5 * np.sum(z * z, axis=2)).mean(axis=1)
+        return dens
+    from scipy.spatial import cKDTree
+    c = float(np.sqrt(2.0 * np.log(P / tol)))
+    near = cKDTree(Y / h).sparse_distance_matrix(cKDTree(X / h), c, output_type="ndarray")
+    return np.bincount(near["i"], np.exp(-0.5 * near["v"] ** 2), Y.shape[0]) / P
+
+
+def fit_initial_fpk_weights(sigma_F: MonomialFeatures, states_rel: np.ndarray, bandwidth: np.ndarray, ridge: float = 1e-6,
+                            exact_max_points: int = KDE_EXACT_MAX_POINTS) -> np.ndarray:
     """w_F(0): least squares of sigma_F to a Gaussian kernel density of the t = 0 states.
 
-    states_rel: (P, 4), relative to their centroid. The density is evaluated on the
-    states and on +-h offsets along each axis (9P points) and normalised to a peak of 1.
-    Returns (M_F,).
+    states_rel: (P, 4), relative to their centroid. The density (:func:`kde_at`: exact up to
+    exact_max_points states, k-d tree truncated beyond) is evaluated on the states and on
+    +-h offsets along each axis (9P points) and normalised to a peak of 1. Deterministic in
+    the exchanged states: every vehicle fits the same w_F(0). Returns (M_F,).
     """
     X = np.asarray(states_rel, dtype=float)
     h = np.asarray(bandwidth, dtype=float)
     offsets = [np.zeros(4)] + [sgn * h[d] * np.eye(4)[d] for d in range(4) for sgn in (-1.0, 1.0)]
     Y = np.concatenate([X + o for o in offsets], axis=0)
-    # in row blocks (memory O(block P) instead of O(9 P^2)); each row's reduction is unchanged
-    block = max(1, int(2**21 // max(X.shape[0], 1)))
-    dens = np.empty(Y.shape[0])
-    for b in range(0, Y.shape[0], block):
-        z = (Y[b:b + block, None, :] - X[None, :, :]) / h
-        dens[b:b + block] = np.exp(-0.5 * np.sum(z * z, axis=2)).mean(axis=1)
+    dens = kde_at(Y, X, h, exact_max_points)
     dens /= dens.max()
     Phi = sigma_F.value(Y)
     A = Phi.T @ Phi + ridge * np.trace(Phi.T @ Phi) / Phi.shape[1] * np.eye(Phi.shape[1])

@@ -207,6 +207,13 @@ class MeanFieldPlan:
     def _pairs(self, x: np.ndarray) -> np.ndarray:
         vmax = float(np.max(np.linalg.norm(x[:, 2:4], axis=1))) if self.N else 0.0
         cutoff = self.radius_m + 2.0 * vmax * self.rp.horizon_s
+        if self.N:
+            # tighter, still exact: |v_j - v_i| <= 2 max_k |v_k - c| for any c (the velocity box's centre), and
+            # repulsion_acc keeps only |d| <= R + horizon |v_j - v_i| + 1e-6; a swarm flying together has
+            # a small velocity spread, so this lists far fewer pairs than 2 max|v| (the same pairs are kept)
+            c = 0.5 * (x[:, 2:4].min(axis=0) + x[:, 2:4].max(axis=0))
+            spread = float(np.max(np.linalg.norm(x[:, 2:4] - c[None, :], axis=1)))
+            cutoff = min(cutoff, self.radius_m + 2.0 * spread * self.rp.horizon_s + 2e-6)
         return cKDTree(x[:, 0:2]).query_pairs(cutoff, output_type="ndarray")
 
     def action(self) -> np.ndarray:

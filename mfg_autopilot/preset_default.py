@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from . import controller
 from .backstop import apply_backstop, backstop_acc
-from .controller import Neighbours, Observation
+from .controller import HeardSummary, Neighbours, Observation
 from .costs import cs_kernel
 from .default_params import DefaultPreset
 from .features import make_sigma_F, make_sigma_H
@@ -70,6 +70,26 @@ class _DefaultBase:
 
     def _spacing_m(self) -> float:
         return float("inf")
+
+    # sensor quantisation (ADSB_VEHICLE: 1e-7 deg ~ 1.1 cm per axis, 1 cm/s and 0.01 deg of the velocity) is
+    # covered by these margins in sensed_cutoff_m
+    _SENSED_POS_MARGIN_M = 0.05
+    _SENSED_VEL_MARGIN_M_S = 0.02
+
+    def sensed_cutoff_m(self, states: np.ndarray) -> float | None:
+        """For a bank holding every vehicle (observed states (N, 4)): sensed vehicles farther than this
+        cannot change any row's action, so a simulator may deliver only those within it (None: all
+        within the sensor range). The backstop acts only on a predicted closest approach rho below its
+        trigger (at most max(trigger_m, unplanned_trigger_m)), and rho >= |d| - horizon |u| with
+        |u| <= 2 max_k |v_k - c| (c the centre of the velocity box), plus the sensor's quantisation."""
+        bp = self.preset.backstop
+        if not bp.enabled or states.shape[0] == 0:
+            return None
+        v = states[:, 2:4]
+        c = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        spread = float(np.max(np.linalg.norm(v - c[None, :], axis=1)))
+        trig = max(bp.trigger_m, bp.unplanned_trigger_m)
+        return trig + 2.0 * bp.horizon_s * (spread + self._SENSED_VEL_MARGIN_M_S) + self._SENSED_POS_MARGIN_M
 
     @staticmethod
     def _not_heard(sensed: Neighbours, heard: Neighbours | None) -> Neighbours:
@@ -148,8 +168,19 @@ class DefaultMFGController(_DefaultBase):
         if ids is not None and len(ids) == q.shape[0]:
             # the same vehicle is sensed by many rows: query each distinct state once (the same distance),
             # after checking that every row of an id carries the same state (else query them all)
-            _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-            inv = inv.reshape(-1)
+            # (distinct ids ascending and each row's rank among them, as np.unique gives them, in O(m + max id)
+            # instead of a sort; the representative row of an id is its last one - all carry the same state)
+            ids = np.asarray(ids, dtype=np.int64)
+            if ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
+                present = np.zeros(int(ids.max()) + 1, dtype=bool)
+                present[ids] = True
+                rep = np.empty(present.size, dtype=np.int64)
+                rep[ids] = np.arange(ids.size)
+                first = rep[present]
+                inv = (np.cumsum(present) - 1)[ids]
+            else:
+                _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+                inv = inv.reshape(-1)
             if np.array_equal(q[first][inv], q):
                 d, _ = cKDTree(self.plan.states * w).query(q[first] * w, k=1)
                 return (d > self.preset.backstop.plan_mismatch_m)[inv]
@@ -160,24 +191,32 @@ class DefaultMFGController(_DefaultBase):
     def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
         tp = self.preset.tracking
         x = self.plan.states
-        tree = cKDTree(x[:, 0:2])
-        lists = tree.query_ball_point(own[:, 0:2], tp.phi_g_radius_m, return_sorted=True)
-        # (row, particle) pairs in row order, particles ascending, own particle left out (vectorised; same order
-        # as sorting each row's list)
-        lens = np.fromiter((len(lst) for lst in lists), dtype=np.int64, count=len(lists))
-        cols = np.fromiter((j for lst in lists for j in lst), dtype=np.int64, count=int(lens.sum()))
-        rows = np.repeat(np.arange(len(lists), dtype=np.int64), lens)
+        # (row, particle) pairs within the radius (k-d tree against k-d tree, all in C), in row order with
+        # particles ascending (the order of each row's sorted query_ball_point list), own particle left out
+        near = cKDTree(own[:, 0:2]).sparse_distance_matrix(cKDTree(x[:, 0:2]), tp.phi_g_radius_m, output_type="ndarray")
+        rows, cols = near["i"].astype(np.int64), near["j"].astype(np.int64)
+        order = np.argsort(rows * np.int64(x.shape[0]) + cols)      # distinct keys: any sort gives one order
+        rows, cols = rows[order], cols[order]
         keep = cols != self.own_index[rows]
         rows, cols = rows[keep], cols[keep]
         if cols.size == 0:
             return np.zeros(self.n), 0
         k = cs_kernel(own[rows], x[cols], self.preset.cost)
         if tp.learn_fpk:
-            # sigma_F is elementwise per row: evaluate it once per particle used, then gather per pair, in the
-            # memory layout (Fortran order) that sigma_F.value returns, so that einsum sums in the same order
-            used, pos = np.unique(cols, return_inverse=True)
-            sig = np.asfortranarray(self.sigma_F.value(x[used] - centroid[None, :])[pos.reshape(-1)])
-            w = np.maximum(np.einsum("pm,pm->p", sig, self.w_F[rows]), 0.0)
+            # sigma_F is elementwise per row: evaluate it once per particle used (the used ones ascending, as
+            # np.unique gives them), then gather per pair
+            present = np.bincount(cols, minlength=x.shape[0]) > 0
+            used = np.flatnonzero(present)
+            pos = (np.cumsum(present) - 1)[cols]
+            # per pair m_hat = sum_m sig[m] w_F[m], summed sequentially over m = 0..M-1 (what einsum does with the
+            # pair axis contiguous; tests/test_scaling.py checks the two agree bit for bit), one feature at a time
+            # from transposed tables: no (pairs, M_F) temporaries
+            sigT = np.ascontiguousarray(self.sigma_F.value(x[used] - centroid[None, :]).T)      # (M_F, used)
+            wT = np.ascontiguousarray(self.w_F.T)                                              # (M_F, n)
+            w = np.zeros(cols.size)
+            for m in range(sigT.shape[0]):
+                w += sigT[m][pos] * wT[m][rows]
+            w = np.maximum(w, 0.0)
         else:
             w = np.ones(cols.size)
         tot = np.bincount(rows, w, self.n)
@@ -257,20 +296,37 @@ class DefaultHJBController(_DefaultBase):
         self._radius = np.full(self.n, self.preset.hjb_repulsion.radius_m)
         self._slots_known = False
 
-    def _init_slots(self, own: np.ndarray, heard: Neighbours) -> None:
+    def _init_slots(self, own: np.ndarray, heard: HeardSummary) -> None:
         """Slot = site + own offset from the centroid of {own, heard at the first step};
         repulsion radius from the nearest heard neighbour (slot spacing)."""
         n, rp = self.n, self.preset.hjb_repulsion
-        cnt = 1.0 + heard.counts(n)
-        cen = np.stack([own[:, d] + np.bincount(heard.owner, heard.states[:, d], n) for d in range(2)], axis=1) / cnt[:, None]
+        cnt = 1.0 + heard.count
+        cen = np.stack([own[:, d] + heard.pos_sum_m[:, d] for d in range(2)], axis=1) / cnt[:, None]
         if self.preset.use_slots:
             self._dest = self.destination_site_m + own[:, 0:2] - cen
-        near = np.full(n, np.inf)
-        if heard.states.shape[0]:
-            dist = np.linalg.norm(heard.states[:, 0:2] - own[heard.owner, 0:2], axis=1)
-            np.minimum.at(near, heard.owner, dist)
-        self._radius = np.minimum(rp.radius_m, rp.slot_fraction * near)
+        self._radius = np.minimum(rp.radius_m, rp.slot_fraction * heard.nearest_m)
         self._slots_known = True
+
+    @property
+    def needs_heard_summary(self) -> bool:
+        """The first step derives slots and radii from everything heard (controller.HeardSummary)."""
+        return not self._slots_known
+
+    def heard_cutoff_m(self, step: int, states: np.ndarray) -> float:
+        """Heard states farther than this cannot change any row's action (controller.Controller):
+        the repulsion is exactly zero for |d| > R + horizon |u| (planner.repulsion_acc), |u| <= 2 max|v - c|;
+        the backstop's exclusion of heard vehicles needs the heard ones within the sensor range."""
+        p, rp = self.preset, self.preset.hjb_repulsion
+        cut = 0.0
+        if p.use_repulsion and states.shape[0]:
+            v = states[:, 2:4]
+            c = 0.5 * (v.min(axis=0) + v.max(axis=0))          # |v_j - v_i| <= 2 max_k |v_k - c| for any c
+            spread = float(np.max(np.linalg.norm(v - c[None, :], axis=1)))
+            rad = float(np.max(self._radius)) if self._slots_known else rp.radius_m
+            cut = rad + 2.0 * rp.horizon_s * spread + 1e-6
+        if self.sensor_range_m is not None:
+            cut = max(cut, float(self.sensor_range_m))
+        return cut
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """Not used: HJB_d hears its neighbours at every step instead."""
@@ -280,7 +336,7 @@ class DefaultHJBController(_DefaultBase):
         own = np.asarray(obs.own_states, dtype=float)
         heard = obs.neighbours if obs.neighbours is not None else Neighbours.empty()
         if not self._slots_known:
-            self._init_slots(own, heard)
+            self._init_slots(own, obs.heard_summary if obs.heard_summary is not None else HeardSummary.of(own, heard, self.n))
         s_rel = own - np.concatenate([self._dest, np.zeros_like(self._dest)], axis=1)
         a_goal = goal_acc(s_rel, p.guidance, p.cost)
         a_rep = (repulsion_from_neighbours(own, heard.states, heard.owner, self._radius, p.hjb_repulsion)

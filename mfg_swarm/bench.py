@@ -140,9 +140,14 @@ print(json.dumps({"setup_and_first_step_s": marks[0] - t, "step_s_median": float
 """
 
 
+SIM_HJB_RANGE_M = 100.0
+"""HJB_d's radio range in the simulator benchmark: HJB_100, issue 8's "both modes" (at the slots every UAV
+hears nearly everyone: the simulator's worst case)."""
+
+
 def _sim_point(n: int, mode: str, preset: str, steps: int, timeout_s: float, scenario: str = "paper") -> dict:
     args = {"n": n, "mode": mode, "preset": preset, "steps": steps, "scenario": scenario,
-            "range_m": 10.0 if mode == "hjb" else None}
+            "range_m": SIM_HJB_RANGE_M if mode == "hjb" else None}
     rec = {"n": n, "mode": mode, "preset": preset, "scenario": scenario, "steps": steps, "load_before": _load()}
     t = time.perf_counter()
     try:
@@ -158,12 +163,12 @@ def _sim_point(n: int, mode: str, preset: str, steps: int, timeout_s: float, sce
     return rec
 
 
-def _slope(points: list[dict]) -> float | None:
-    ok = [p for p in points if p.get("status") == "ok"]
+def _slope(points: list[dict], key: str = "wall_s") -> float | None:
+    ok = [p for p in points if p.get("status") == "ok" and p.get(key)]
     if len(ok) < 2:
         return None
     a, b = ok[-2], ok[-1]
-    return math.log(b["wall_s"] / a["wall_s"]) / math.log(b["n"] / a["n"])
+    return math.log(b[key] / a[key]) / math.log(b["n"] / a["n"])
 
 
 _SHORT_STEPS = 10
@@ -177,7 +182,8 @@ def bench_sim(quick: bool = False, timeout_s: float = 900.0, ns: tuple[int, ...]
     steps = 20 if quick else int(round(200.0 / preset_by_name("default").dt_s))
     ns = ns or ((25, 81) if quick else (25, 81, 1000, 10000))
     repeats = repeats or (1 if quick else 3)
-    out: dict = {"steps": steps, "simulated_s": steps * preset_by_name("default").dt_s, "points": [], "exponent": {}}
+    out: dict = {"steps": steps, "simulated_s": steps * preset_by_name("default").dt_s, "hjb_range_m": SIM_HJB_RANGE_M,
+                 "points": [], "exponent": {}, "exponent_cpu": {}}
     for mode in ("mfg", "hjb"):
         pts = []
         for n in ns:
@@ -200,6 +206,7 @@ def bench_sim(quick: bool = False, timeout_s: float = 900.0, ns: tuple[int, ...]
             if rec["status"] != "ok":
                 break                      # larger N would not finish either
         out["exponent"][mode] = _slope(pts)
+        out["exponent_cpu"][mode] = _slope(pts, "cpu_s")     # CPU time: less sensitive to a shared machine's load
     # the paper preset's MFG: N particles per vehicle, O(N^2) per step by construction (docs/mean_field.md)
     psteps = 10 if quick else 50
     paper_pts = [_sim_point(n, "mfg", "paper", psteps, timeout_s) for n in ((25,) if quick else (25, 81, 256))]

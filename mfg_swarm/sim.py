@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mfg_autopilot.controller import MODES, Neighbours, Observation, make_controller
+from mfg_autopilot.controller import MODES, HeardSummary, Neighbours, Observation, make_controller
 from mfg_autopilot.params import Preset
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
@@ -118,6 +118,56 @@ def plant_params_for(preset: Preset, physics_dt_s: float = 0.1) -> PlantParams:
                        acc_limit_m_s2=preset.learner.acc_max_m_s2, physics_dt_s=physics_dt_s)
 
 
+FULL_HEARD_MAX_STATES = 0
+"""HJB_d: up to this many heard states in a step (summed over UAVs) every heard state is delivered,
+whatever the controller's heard_cutoff_m (kept for experiments: the cutoff gives the same actions)."""
+
+_SUMMARY_BLOCK = 512      # rows per block when summing heard positions without listing every pair at once
+
+
+def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts: np.ndarray) -> HeardSummary:
+    """HeardSummary over every vehicle within range_m of each one (self excluded), in row blocks:
+    memory O(block N) instead of O(heard pairs). pts (N, 2); counts (N,) from the same tree."""
+    n = pts.shape[0]
+    pos_sum = np.zeros((n, 2))
+    for b in range(0, n, _SUMMARY_BLOCK):
+        e = min(n, b + _SUMMARY_BLOCK)
+        m = cKDTree(pts[b:e]).sparse_distance_matrix(tree, range_m, output_type="ndarray")
+        i, j = m["i"], m["j"]
+        keep = i + b != j
+        i, j = i[keep], j[keep]
+        for d in range(2):
+            pos_sum[b:e, d] = np.bincount(i, pts[j, d], e - b)
+    dnn, _ = tree.query(pts, k=2)
+    nearest = np.where(dnn[:, 1] <= range_m, dnn[:, 1], np.inf)
+    return HeardSummary(np.asarray(counts, dtype=np.int64), pos_sum, nearest)
+
+
+def hear(obs: np.ndarray, range_m: float, ctrl, step: int) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
+    """HJB_d's exchange at one step: every UAV hears the UAVs within range_m (k-d tree).
+
+    Returns (heard, summary, counts): counts (N,) is the exact number of states each UAV
+    received (the communication metric). If the controller declares a ``heard_cutoff_m``
+    (controller.Controller) below range_m, only the heard states within the cutoff are listed
+    (O(N log N + pairs within the cutoff) instead of O(pairs within d): at the destination every
+    UAV hears everyone), with a HeardSummary over all of them when the controller needs it."""
+    n = obs.shape[0]
+    if n < 2:
+        return Neighbours.from_pairs(obs, np.zeros((0, 2), np.int64)), None, np.zeros(n, dtype=np.int64)
+    pts = obs[:, 0:2]
+    tree = cKDTree(pts)
+    cut = ctrl.heard_cutoff_m(step, obs) if hasattr(ctrl, "heard_cutoff_m") else None
+    if cut is not None and cut < range_m:
+        counts = tree.query_ball_point(pts, range_m, return_length=True, workers=-1).astype(np.int64) - 1   # self is within range
+        if int(counts.sum()) > FULL_HEARD_MAX_STATES:
+            heard = Neighbours.from_pairs(obs, tree.query_pairs(cut, output_type="ndarray"))
+            summary = (heard_summary_by_tree(tree, pts, range_m, counts)
+                       if getattr(ctrl, "needs_heard_summary", True) else None)
+            return heard, summary, counts
+    heard = Neighbours.from_pairs(obs, tree.query_pairs(range_m, output_type="ndarray"))
+    return heard, None, heard.counts(n)
+
+
 class _Progress:
     def __init__(self, total: int, enabled: bool) -> None:
         self.total, self.enabled, self.last = total, enabled, -1.0
@@ -166,19 +216,21 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         pos[k], vel[k] = plant.states[:, 0:2], plant.states[:, 2:4]
         w_ref[k] = ctrl.weights()["w_H"][0]
         heard = sensed = None
+        heard_summary = None
         if cfg.gossips:
-            pairs = cKDTree(obs[:, 0:2]).query_pairs(cfg.range_m, output_type="ndarray") if n > 1 else np.zeros((0, 2), int)
-            heard = Neighbours.from_pairs(obs, pairs)
-            comm[k] += heard.counts(n)
+            heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k)
+            comm[k] += counts
         if sensor_range_m is not None and n > 1:
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
             # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md)
-            owner, other = sensed_rows(sensed_pairs(obs, sensor_range_m))
-            seen = np.unique(other)
+            # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m, if any)
+            reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
+            owner, other = sensed_rows(sensed_pairs(obs, sensor_range_m if reach is None else min(sensor_range_m, reach)))
+            seen = np.flatnonzero(np.bincount(other, minlength=n))     # = np.unique(other), without a sort
             q = np.zeros_like(obs)
             q[seen] = quantise_sensed_states(obs[seen])
             sensed = Neighbours(q[other], owner, other)
-        info = ctrl.step(Observation(k, k * dt, obs, heard, sensed))
+        info = ctrl.step(Observation(k, k * dt, obs, heard, sensed, heard_summary))
         acc_cmd = f32(info.acc_m_s2)
         if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:
             K = cfg.fail_vehicle

@@ -1,0 +1,131 @@
+"""Simulator scaling (issue 8): the shortcuts that make N = 10,000 tractable give what the
+plain all-pairs computations give (exactly, or within the stated tolerance)."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import mfg_swarm.sim as sim
+from mfg_autopilot.controller import HeardSummary, Neighbours, make_controller
+from mfg_autopilot.features import make_sigma_F
+from mfg_autopilot.meanfield import KDE_TRUNCATION_TOL, fit_initial_fpk_weights, kde_at
+from mfg_autopilot.params import preset_by_name
+from mfg_swarm.scenarios import make_scenario
+from mfg_swarm.sim import SimConfig, heard_summary_by_tree, simulate
+
+DEFAULT = preset_by_name("default")
+
+
+def _t0_states(n: int, seed: int) -> np.ndarray:
+    """A paper grid with jittered positions and wind-like velocities, relative to the centroid."""
+    rng = np.random.default_rng(seed)
+    pos = make_scenario("paper", n).initial_pos_m + 0.2 * rng.standard_normal((n, 2))
+    vel = np.array([1.0, -1.0]) + 0.1 * rng.standard_normal((n, 2))
+    X = np.concatenate([pos, vel], axis=1)
+    return X - X.mean(axis=0)
+
+
+@pytest.mark.parametrize("n,seed", [(200, 0), (700, 1)])
+def test_truncated_kde_is_within_its_bound_of_the_exact_one(n, seed):
+    # given t = 0 states and the default bandwidth
+    X = _t0_states(n, seed)
+    h = np.asarray(DEFAULT.learner.fpk_kde_bandwidth)
+    Y = np.concatenate([X, X + 0.5 * h], axis=0)
+    # when the density is computed exactly and with the k-d tree cut-off
+    exact = kde_at(Y, X, h, exact_max_points=10**9)
+    trunc = kde_at(Y, X, h, exact_max_points=0)
+    # then they differ by less than the stated bound, relative to the peak (plus rounding)
+    assert np.max(np.abs(trunc - exact)) <= (KDE_TRUNCATION_TOL + 1e-14) * exact.max()
+    # and so does the fitted w_F(0)
+    sF = make_sigma_F(DEFAULT.learner.fpk_scale)
+    w_exact = fit_initial_fpk_weights(sF, X, h, exact_max_points=10**9)
+    w_trunc = fit_initial_fpk_weights(sF, X, h, exact_max_points=0)
+    assert np.max(np.abs(w_trunc - w_exact)) <= 1e-8 * np.max(np.abs(w_exact))
+
+
+def test_small_swarms_keep_the_exact_kde():
+    X = _t0_states(50, 2)
+    h = np.asarray(DEFAULT.learner.fpk_kde_bandwidth)
+    z = (X[:, None, :] - X[None, :, :]) / h
+    np.testing.assert_array_equal(kde_at(X, X, h), np.exp(-0.5 * np.sum(z * z, axis=2)).mean(axis=1))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_heard_summary_by_tree_equals_the_one_from_the_complete_list(seed):
+    # given scattered vehicles (some coincident) and a radio range covering part of them
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0.0, 60.0, (1300, 2))
+    pts[5] = pts[6]
+    obs = np.concatenate([pts, rng.standard_normal((1300, 2))], axis=1)
+    tree = cKDTree(pts)
+    full = Neighbours.from_pairs(obs, tree.query_pairs(20.0, output_type="ndarray"))
+    ref = HeardSummary.of(obs, full, 1300)
+    counts = tree.query_ball_point(pts, 20.0, return_length=True) - 1
+    got = heard_summary_by_tree(tree, pts, 20.0, counts)
+    np.testing.assert_array_equal(got.count, ref.count)
+    np.testing.assert_allclose(got.pos_sum_m, ref.pos_sum_m, rtol=1e-12)
+    np.testing.assert_allclose(got.nearest_m, ref.nearest_m, rtol=1e-12)
+    assert got.nearest_m[5] == 0.0
+
+
+@pytest.mark.parametrize("scenario,n,extra", [("crossing", 36, {}), ("dense", 49, {}),
+                                              ("paper", 25, {"fail_vehicle": 3, "fail_at_s": 10.0})])
+def test_hjb_delivering_only_heard_states_within_the_cutoff_flies_the_same(monkeypatch, scenario, n, extra):
+    # given HJB_100 with the default controller (its heard_cutoff_m is ~10 m < d)
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=4, steps=120, range_m=100.0, **extra)
+    # when the simulator delivers every heard state, and when it delivers the cut-off list + summary
+    monkeypatch.setattr(sim, "FULL_HEARD_MAX_STATES", 10**12)
+    t_full, m_full = simulate(cfg, progress=False)
+    monkeypatch.setattr(sim, "FULL_HEARD_MAX_STATES", 0)
+    t_cut, m_cut = simulate(cfg, progress=False)
+    # then the communication count is exact and the flight the same (up to the summation order of the
+    # first step's centroid: equal to rounding)
+    np.testing.assert_array_equal(t_cut.comm_states, t_full.comm_states)
+    np.testing.assert_allclose(t_cut.pos_m, t_full.pos_m, rtol=0, atol=1e-9)
+    assert m_cut["collision_pairs"] == m_full["collision_pairs"]
+
+
+def test_heard_cutoff_bounds_the_repulsion_reach():
+    # given a default HJB_d bank and states with one fast vehicle
+    sc = make_scenario("paper", 9)
+    ctrl = make_controller("hjb", DEFAULT, sc.destination_m)
+    obs = np.concatenate([sc.initial_pos_m, np.zeros((9, 2))], axis=1)
+    obs[4, 2:4] = [3.0, 4.0]
+    cut = ctrl.heard_cutoff_m(0, obs)
+    rp = DEFAULT.hjb_repulsion
+    # then it covers the repulsion radius plus the horizon at twice the largest speed, and the sensor range
+    assert cut >= rp.radius_m + 2.0 * rp.horizon_s * 2.5      # |v_j - v_i| <= 2 * half the velocity box diagonal (5 m/s)
+    assert cut >= DEFAULT.backstop.sensor_range_m
+
+
+@pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
+                                                   ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
+def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
+    # given runs in which the backstop acts (dense formation, a failed vehicle)
+    import mfg_autopilot.preset_default as pd
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode=mode, preset=DEFAULT, seed=0, steps=160,
+                    range_m=1.0 if mode == "hjb" else None, **extra)       # HJB_1: sensed but not heard vehicles
+    # when the simulator delivers what the sensor sees within its range, and only within sensed_cutoff_m
+    t_cut, m_cut = simulate(cfg, progress=False)
+    monkeypatch.setattr(pd._DefaultBase, "sensed_cutoff_m", lambda self, states: None)
+    t_all, m_all = simulate(cfg, progress=False)
+    # then the flights are the same bit for bit
+    assert m_all["backstop_activations"] > 0
+    assert m_cut["backstop_activations"] == m_all["backstop_activations"]
+    np.testing.assert_array_equal(t_cut.acc_m_s2, t_all.acc_m_s2)
+    np.testing.assert_array_equal(t_cut.pos_m, t_all.pos_m)
+
+
+def test_phi_G_feature_loop_sums_like_the_einsum_it_replaced():
+    # given per-particle sigma_F rows, per-row w_F and (row, particle) pairs as _phi_G builds them
+    rng = np.random.default_rng(5)
+    sig = np.asfortranarray(rng.standard_normal((700, 69)))      # sigma_F.value's layout
+    wF = rng.standard_normal((500, 69))
+    pos, rows = rng.integers(0, 700, 20000), np.sort(rng.integers(0, 500, 20000))
+    # when m_hat per pair is summed one feature at a time (DefaultMFGController._phi_G)
+    sigT, wT = np.ascontiguousarray(sig.T), np.ascontiguousarray(wF.T)
+    w = np.zeros(pos.size)
+    for m in range(69):
+        w += sigT[m][pos] * wT[m][rows]
+    # then it is bit-identical to the former einsum over the gathered Fortran-order block
+    np.testing.assert_array_equal(w, np.einsum("pm,pm->p", np.asfortranarray(sig[pos]), wF[rows]))
