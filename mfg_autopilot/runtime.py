@@ -22,6 +22,7 @@ The log (JSON Lines, docs/controller_log.md) is flushed after every record.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import math
@@ -85,6 +86,7 @@ class AutopilotConfig:
     mavlink_key_file: str | None = None       # MAVLink 2 signing key (docs/security.md)
     traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
     traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
+    checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -162,6 +164,7 @@ class Autopilot:
         self.mission_start_unix_s: float | None = None
         self.n_t0 = 0
         self._traffic_sensor: bool | None = None    # proximity sensor on the vehicle (decided at the first step)
+        self._last_checkpoint_monotonic_s = -math.inf
         self._home: HomePosition | None = None
 
     # ---------------------------------------------------------------- phases
@@ -274,22 +277,27 @@ class Autopilot:
             obs = self._observe(k, state, t_ms / 1000.0)
             info = self.ctrl.step(obs)
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
+            sp = (float(acc[0]), float(acc[1]), 0.0)
+            # the setpoint goes on the wire first: the vehicle (and the world barrier behind it)
+            # steps while this process writes its log line and checkpoint
+            deadline = time.monotonic() + self.cfg.step_timeout_s
+            self.link.send_acc_setpoint(sp, t_ms)
             self._record(k, t_ms / 1000.0, state, acc, info, obs, None)
-            p = self._lockstep_exchange_setpoint(acc, t_ms)
             self._checkpoint(k)
+            p = self._lockstep_await_position(sp, t_ms, deadline)
 
-    def _lockstep_exchange_setpoint(self, acc: np.ndarray, t_ms: int) -> LocalPositionNed:
-        """Send the step's setpoint stamped t_ms and wait for the position stamped after it,
-        re-sending on silence (UDP loss); the vehicle ignores duplicates."""
-        deadline = time.monotonic() + self.cfg.step_timeout_s
+    def _lockstep_await_position(self, sp: tuple[float, float, float], t_ms: int, deadline: float) -> LocalPositionNed:
+        """Wait for the position stamped after t_ms (the setpoint stamped t_ms was sent),
+        re-sending the setpoint every step_retry_s of silence (UDP loss; the vehicle ignores
+        duplicates); AutopilotError at ``deadline`` (monotonic)."""
         while True:
-            self.link.send_acc_setpoint((float(acc[0]), float(acc[1]), 0.0), t_ms)
             try:
-                return self.link.wait_local_position(t_ms, timeout_s=self.cfg.step_retry_s)
+                return self.link.wait_local_position(t_ms, timeout_s=max(0.0, min(self.cfg.step_retry_s, deadline - time.monotonic())))
             except TelemetryTimeout:
-                if time.monotonic() > deadline or self.stop.is_set():
+                if time.monotonic() >= deadline or self.stop.is_set():
                     raise AutopilotError(f"vehicle {self.cfg.system_id} did not advance past t = {t_ms} ms within "
                                          f"{self.cfg.step_timeout_s} s of lockstep setpoints; is it still in OFFBOARD?") from None
+            self.link.send_acc_setpoint(sp, t_ms)
 
     def run_realtime(self) -> str:
         """Control steps on the mission clock: step k at mission start + k dt (wall time), so
@@ -338,8 +346,11 @@ class Autopilot:
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             sp = (float(acc[0]), float(acc[1]), 0.0)
             self.link.set_held_setpoint(sp)
-            self.link.send_acc_setpoint(sp)
-            latency = time.monotonic() - p.received_monotonic_s
+            sent_monotonic_s = self.link.send_acc_setpoint(sp)
+            # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
+            # transport has one) -> this setpoint handed to the kernel; logging and the
+            # checkpoint come after it
+            latency = sent_monotonic_s - p.received_monotonic_s
             self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
             self._checkpoint(k)
             ended = self._check_mode()
@@ -381,11 +392,19 @@ class Autopilot:
         return {"swarm": c.swarm, "instance": c.instance, "n": c.n, "mode": c.mode, "preset": c.preset,
                 "lockstep": c.lockstep, "sites": None if c.sites_m is None else [list(x) for x in c.sites_m]}
 
-    def _checkpoint(self, k: int) -> None:
+    def _checkpoint(self, k: int, force: bool = False) -> None:
         """Persist what must survive a controller crash (the t = 0 exchange as held by the
-        controller, its learned weights, the mission clock), atomically."""
+        controller, its learned weights, the mission clock), atomically; at most once per
+        ``checkpoint_interval_s`` of wall time unless ``force`` (step 0 always: the first
+        call). A restarted controller resumes from the newest checkpoint, so from the
+        controller state of at most that long ago; the mission clock (real time) and the
+        vehicle's simulated time (lockstep) still place it on the right step."""
         if not self.cfg.state_dir:
             return
+        now = time.monotonic()
+        if not force and now - self._last_checkpoint_monotonic_s < self.cfg.checkpoint_interval_s:
+            return
+        self._last_checkpoint_monotonic_s = now
         blob = pickle.dumps({"version": 1, "identity": self._identity(), "step": k, "ctrl": self.ctrl,
                              "mission_start_unix_s": self.mission_start_unix_s, "states_received_t0": self.n_t0},
                             protocol=pickle.HIGHEST_PROTOCOL)
@@ -478,6 +497,10 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
             except ExchangeTimeout as exc:
                 where = f"; check that --zenoh-connect {list(cfg.zenoh.connect)} is reachable" if cfg.zenoh.connect else ""
                 raise AutopilotError(f"{exc}{where}") from None
+            # start-up garbage (imports, the t = 0 exchange and plan) is collected once and
+            # frozen, so the cyclic GC's full collections during the flight have little to scan
+            gc.collect()
+            gc.freeze()
             if stop.is_set():
                 reason = "signal"
             else:
