@@ -104,7 +104,8 @@ SIGNED_COMMAND_MESSAGES = (CommandLong, CommandInt, SetMode, SetPositionTargetLo
 
 _ID = MSG_ID_BY_NAME
 FAST_TELEMETRY = ("local_position", "attitude", "global_position")
-"""In lockstep (armed, OFFBOARD) these follow the steps instead of their wall-clock rates."""
+"""In lockstep these follow the steps (plus ``lockstep_resend_hz`` re-sends while idle)
+instead of their wall-clock rates: between steps the state does not change."""
 TELEMETRY_IDS = {
     _ID["HEARTBEAT"]: "heartbeat",
     _ID["SYS_STATUS"]: "sys_status",
@@ -562,6 +563,11 @@ class MockVehicle:
             return
         self._send_many(self._fast_telemetry(), None)
 
+    def _resend_allowed(self) -> bool:
+        """Lockstep: the current position may be re-sent unless a step's telemetry waits for
+        the world's answer (t = 0, the frozen initial state, may always be re-sent)."""
+        return self._world_pending_ms is None or self._world_pending_ms == 0
+
     def _stepped_now(self) -> None:
         """Lockstep: a step just happened, so its telemetry (and traffic set) goes out now: the
         wall-clock re-sends are only for a vehicle that is idle (docs/lockstep.md)."""
@@ -664,16 +670,16 @@ class MockVehicle:
         self._periodic(now)
 
     def _periodic(self, now: float) -> None:
-        lockstep_fast = self.cfg.lockstep and self.mode == PX4_OFFBOARD and self.armed
+        lockstep = self.cfg.lockstep
         for kind, interval in self._intervals_s.items():
             if interval == math.inf or now < self._next_due[kind]:
                 continue
-            if lockstep_fast and kind in FAST_TELEMETRY:
+            if lockstep and kind in FAST_TELEMETRY:
                 continue  # in lockstep these follow the steps (plus the slow re-send below)
             self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
             self._send(self._telemetry(kind), None)
         self._world_tick(now)
-        if lockstep_fast and self._world_pending_ms is None and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
+        if lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
             self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
             self._send_many(self._fast_telemetry(), None)
 
@@ -681,14 +687,13 @@ class MockVehicle:
         """Monotonic time of the next periodic event (for the I/O loop's select timeout): the
         loop sleeps until then or until a packet arrives, so an idle or lockstep vehicle does not
         spin. Every event ``tick`` acts on has its deadline here."""
-        lockstep_fast = self.cfg.lockstep and self.mode == PX4_OFFBOARD and self.armed
         t = min((self._next_due[k] for k, iv in self._intervals_s.items()
-                 if iv != math.inf and not (lockstep_fast and k in FAST_TELEMETRY)), default=math.inf)
+                 if iv != math.inf and not (self.cfg.lockstep and k in FAST_TELEMETRY)), default=math.inf)
         if not self.cfg.lockstep:
             t = min(t, self._t0 + self._phys_t_s + self.cfg.physics_dt_s)
             if self.mode == PX4_OFFBOARD:  # the offboard-loss failsafe, on time
                 t = min(t, self._t0 + self._last_sp_sim_s + self.params["COM_OF_LOSS_T"] + 1e-4)
-        if lockstep_fast and self._world_pending_ms is None and self.cfg.lockstep_resend_hz > 0:
+        if self.cfg.lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0:
             t = min(t, self._next_resend)
         if self._world_report is not None:
             if self.cfg.lockstep and self._world_pending_ms is not None:
