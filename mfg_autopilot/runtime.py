@@ -35,11 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mavlink_bridge import BridgeError, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink, load_signing_key
+from mavlink_bridge import BridgeError, HeartbeatTimeout, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink, load_signing_key
 from mavlink_bridge.adsb import adsb_states
 
 from .controller import Neighbours, Observation, make_controller
-from .exchange import ExchangeError, ExchangeTimeout, SwarmExchange, ZenohSettings
+from .exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange, ZenohSettings
 from .params import preset_by_name
 
 __all__ = ["AutopilotConfig", "ControllerLog", "run_autopilot", "LOCKSTEP_PRESTREAM_TIME_BOOT_MS", "AutopilotError"]
@@ -172,7 +172,7 @@ class Autopilot:
         """MFG: the t = 0 exchange (N - 1 states). HJB_d: wait until all N are present."""
         cfg = self.cfg
         if getattr(self.ctrl, "uses_t0_exchange", not self.gossips):
-            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s)
+            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s, stop=self.stop)
             ids = np.array(sorted(got), dtype=np.int64)
             states = np.array([got[i].state for i in ids], dtype=float)
             own = int(np.flatnonzero(ids == cfg.instance)[0])
@@ -180,7 +180,7 @@ class Autopilot:
             self.clog.event("t0_exchange", states_received=len(ids) - 1)
             self.n_t0 = len(ids) - 1
             return self.n_t0
-        self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s)
+        self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s, stop=self.stop)
         self.clog.event("swarm_present", n=cfg.n)
         return 0
 
@@ -487,13 +487,21 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
         with SwarmExchange(cfg.zenoh, _swarm_key(cfg.swarm), cfg.instance, cfg.n) as exchange:
             link = VehicleLink.open(cfg.connect, target_system=cfg.system_id, target_component=1,
                                     source_system=cfg.system_id, tlog_path=cfg.tlog_path, signing_key=key)
-            link.wait_heartbeat(cfg.vehicle_timeout_s)
+            # start-up waits are long on a loaded machine, so they are sliced to notice a signal
+            if _interruptible(lambda t: link.wait_heartbeat(t), cfg.vehicle_timeout_s, stop, HeartbeatTimeout,
+                              lambda: HeartbeatTimeout(cfg.system_id, 1, cfg.vehicle_timeout_s)) is None:
+                raise _Stopped()
             clog.event("vehicle_found", system_id=cfg.system_id)
-            p0 = link.wait_local_position(None, cfg.vehicle_timeout_s)
+            p0 = _interruptible(lambda t: link.wait_local_position(None, t), cfg.vehicle_timeout_s, stop, TelemetryTimeout,
+                                lambda: TelemetryTimeout("LOCAL_POSITION_NED", cfg.system_id, cfg.vehicle_timeout_s))
+            if p0 is None:
+                raise _Stopped()
             s0 = _state_of(p0)
             ap = Autopilot(cfg, link, exchange, clog, stop)
             try:
                 n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
+            except ExchangeStopped:
+                raise _Stopped() from None
             except ExchangeTimeout as exc:
                 where = f"; check that --zenoh-connect {list(cfg.zenoh.connect)} is reachable" if cfg.zenoh.connect else ""
                 raise AutopilotError(f"{exc}{where}") from None
@@ -511,6 +519,10 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
                         "states_received_t0": n_t0,
                         "destination_m": np.asarray(ap.ctrl.destinations_m, dtype=float)[0]})
         return 0
+    except _Stopped:
+        reason = "signal"
+        clog.write({"type": "end", "reason": reason, "wall_s": time.time(), "note": "stopped during start-up"})
+        return 0
     except (BridgeError, AutopilotError, ExchangeError, TimeoutError, ValueError) as exc:
         clog.event("error", error=f"{type(exc).__name__}: {exc}")
         log.error("%s: %s", type(exc).__name__, exc)
@@ -522,13 +534,32 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     finally:
         if link is not None:
             try:
-                if reason != "error" or link.latest_heartbeat() is not None:
+                if link.latest_heartbeat() is not None:        # a vehicle never heard of is not commanded
                     link.hold(cfg.command_timeout_s if reason != "error" else 3.0)
                     clog.event("hold", reason=reason)
             except BridgeError as exc:
                 clog.event("hold_failed", error=str(exc))
             link.close()
         clog.close()
+
+
+class _Stopped(Exception):
+    """A signal arrived during a start-up wait."""
+
+
+def _interruptible(wait, timeout_s: float, stop: threading.Event, timeout_error: type, on_timeout, slice_s: float = 0.5):
+    """``wait(t)`` in slices of ``slice_s`` until it returns, ``stop`` is set (returns None),
+    or ``timeout_s`` passes (raises ``on_timeout()``: the error for the whole wait)."""
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise on_timeout()
+        try:
+            return wait(min(slice_s, left))
+        except timeout_error:
+            continue
+    return None
 
 
 def _swarm_key(name: str) -> str:
