@@ -242,7 +242,8 @@ class Autopilot:
         ids, states = adsb_states(reports, self._home)
         return Neighbours(states, np.zeros(len(ids), dtype=np.int64), ids)
 
-    def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation, latency_s: float | None) -> None:
+    def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation,
+                latency_s: tuple[float, float, float] | None) -> None:
         w = self.ctrl.weights()
         rec = {"type": "step", "step": k, "time_s": t_s, "state": state, "acc_m_s2": acc,
                "grad_evals": int(info.grad_evals[0]), "mf_evals": int(info.mf_evals[0]),
@@ -255,7 +256,7 @@ class Autopilot:
         if "w_F" in w:
             rec["w_F"] = w["w_F"][0]
         if latency_s is not None:
-            rec["latency_ms"] = latency_s * 1e3
+            rec["latency_ms"], rec["latency_wake_ms"], rec["latency_compute_ms"] = (x * 1e3 for x in latency_s)
         self.clog.write(rec)
 
     def _arrived(self, state: np.ndarray) -> bool:
@@ -339,18 +340,22 @@ class Autopilot:
                 stale = False
                 self.clog.event("telemetry_back")
                 self._resume_offboard()
+            t_woken = time.monotonic()
             state = _state_of(p)
             last_k = k
             obs = self._observe(k, state, p.time_boot_ms / 1000.0)
             info = self.ctrl.step(obs)
+            t_computed = time.monotonic()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             sp = (float(acc[0]), float(acc[1]), 0.0)
-            self.link.set_held_setpoint(sp)
             sent_monotonic_s = self.link.send_acc_setpoint(sp)
+            self.link.set_held_setpoint(sp)
             # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
             # transport has one) -> this setpoint handed to the kernel; logging and the
-            # checkpoint come after it
-            latency = sent_monotonic_s - p.received_monotonic_s
+            # checkpoint come after it. Split: until this loop had the position (receive
+            # thread, wake-up), the observation + control step, the send.
+            latency = (sent_monotonic_s - p.received_monotonic_s,
+                       t_woken - p.received_monotonic_s, t_computed - t_woken)
             self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
             self._checkpoint(k)
             ended = self._check_mode()
