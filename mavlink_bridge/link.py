@@ -199,44 +199,58 @@ class VehicleLink:
                 log.exception("receive failed on %s", self.port.name)
                 time.sleep(0.1)
                 continue
-            for r in received:
-                self._on_message(r)
+            if received:
+                self._on_messages(received)
 
-    def _on_message(self, r: Received) -> None:
+    def _on_messages(self, received: list[Received]) -> None:
+        """One datagram's messages: filtered, then stored under one lock acquisition with one
+        wake-up of the waiters (a traffic set of N reports wakes a waiting control loop once)."""
+        kept = [r.msg for r in received if self._accept(r)]
+        if not kept:
+            return
+        with self._cond:
+            for msg in kept:
+                self._store(msg)
+            self._cond.notify_all()
+
+    def _accept(self, r: Received) -> bool:
+        """Whether a received message is used (the checks that need no lock)."""
         msg = r.msg
         if isinstance(msg, BadData):
             self.n_bad += 1
             self.rejects.reject("bad packet", f"{msg.reason} ({msg.n_bytes} bytes)")
-            return
+            return False
         if self.port.signing is not None and r.signature != SIG_VALID:
             if not (r.signature == SIG_UNSIGNED and self.accept_unsigned):
                 self.rejects.reject(
                     f"{r.signature} packet", f"{type(msg).MSG_NAME} from {r.src_system}/{r.src_component}"
                 )
-                return
+                return False
         if r.src_system != self.target_system:
             self.n_ignored_other_system += 1
-            return
+            return False
         if isinstance(msg, LocalPositionNed) and not all(
             map(math.isfinite, (msg.x_m, msg.y_m, msg.z_m, msg.vx_m_s, msg.vy_m_s, msg.vz_m_s))
         ):
             self.rejects.reject("non-finite LOCAL_POSITION_NED", f"from {r.src_system}/{r.src_component}")
-            return
+            return False
         if isinstance(msg, Heartbeat) and r.src_component != self.target_component and self.target_component != 0:
-            return  # e.g. a camera or gimbal of the same vehicle
-        with self._cond:
-            if isinstance(msg, (AdsbVehicle, NamedValueInt)):
-                self._on_traffic(msg)
-            if isinstance(msg, CommandAck):
-                if msg.target_system in (0, self.port.source_system) and msg.target_component in (0, self.port.source_component):
-                    self._acks.append(msg)
-            elif isinstance(msg, ParamValue):
-                if len(self._params) < MAX_PARAMS or msg.param_id in self._params:
-                    self._params[msg.param_id] = msg
-                else:
-                    self.rejects.reject("PARAM_VALUE beyond the parameter table limit", f"{MAX_PARAMS} names already")
-            self._latest[type(msg)] = msg
-            self._cond.notify_all()
+            return False  # e.g. a camera or gimbal of the same vehicle
+        return True
+
+    def _store(self, msg: Message) -> None:
+        """Keep an accepted message; caller holds ``_cond``."""
+        if isinstance(msg, (AdsbVehicle, NamedValueInt)):
+            self._on_traffic(msg)
+        if isinstance(msg, CommandAck):
+            if msg.target_system in (0, self.port.source_system) and msg.target_component in (0, self.port.source_component):
+                self._acks.append(msg)
+        elif isinstance(msg, ParamValue):
+            if len(self._params) < MAX_PARAMS or msg.param_id in self._params:
+                self._params[msg.param_id] = msg
+            else:
+                self.rejects.reject("PARAM_VALUE beyond the parameter table limit", f"{MAX_PARAMS} names already")
+        self._latest[type(msg)] = msg
 
     TRAFFIC_SETS_KEPT = 32
 
@@ -401,13 +415,16 @@ class VehicleLink:
         """Milliseconds since this link was opened (the default setpoint timestamp)."""
         return int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
 
-    def send_acc_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> None:
+    def send_acc_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> float:
         """One SET_POSITION_TARGET_LOCAL_NED, LOCAL_NED frame, acceleration-only type_mask
-        3135, to the target vehicle only. Raises ValueError for non-finite input."""
+        3135, to the target vehicle only. Returns ``time.monotonic()`` when it was handed to
+        the transport. Raises ValueError for non-finite input."""
         sp = acceleration_setpoint(
             self.target_system, self.target_component, acc_ned_m_s2, self.time_boot_ms() if time_boot_ms is None else time_boot_ms
         )
-        self._send(sp)
+        if self._closed.is_set():
+            raise LinkClosed(f"link to system {self.target_system} is closed")
+        return self.port.send_timed(sp)[1]
 
     def step_lockstep(
         self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int, timeout_s: float, retry_interval_s: float = 0.25

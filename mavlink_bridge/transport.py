@@ -12,8 +12,12 @@ Accepted forms (``//`` after the scheme is allowed, as MAVSDK writes it):
 from __future__ import annotations
 
 import logging
+import math
 import select
 import socket
+import struct
+import sys
+import time
 from dataclasses import dataclass
 
 from .errors import ConnectionStringError
@@ -21,6 +25,11 @@ from .errors import ConnectionStringError
 __all__ = ["Endpoint", "parse_connection_string", "open_transport", "Transport", "UdpTransport", "TcpTransport", "SerialTransport"]
 
 log = logging.getLogger(__name__)
+
+_SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") and struct.calcsize("P") == 8 else None
+"""Linux SO_TIMESTAMPNS (= SCM_TIMESTAMPNS; not exported by Python's socket module): the
+kernel stamps each datagram's arrival (CLOCK_REALTIME, struct timespec of two int64)."""
+_TIMESPEC = struct.Struct("@qq")
 
 
 @dataclass(frozen=True)
@@ -111,6 +120,17 @@ class UdpTransport(Transport):
             self._sock.bind(("0.0.0.0" if endpoint.host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0))
             self.peer = (socket.gethostbyname(endpoint.host), endpoint.port)
         self._sock.setblocking(False)
+        self.last_rx_monotonic_s = math.nan
+        """``time.monotonic()`` of the last datagram's arrival at the socket: the kernel's
+        timestamp where available (Linux), so the wait for this process to read it counts;
+        else when ``recv`` read it."""
+        self._kernel_stamps = False
+        if _SO_TIMESTAMPNS is not None:
+            try:
+                self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self._kernel_stamps = True
+            except OSError:
+                pass
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -129,7 +149,10 @@ class UdpTransport(Transport):
     def recv(self, timeout_s: float) -> bytes | None:
         while True:
             try:
-                data, addr = self._sock.recvfrom(65535)
+                if self._kernel_stamps:
+                    data, anc, _flags, addr = self._sock.recvmsg(65535, 64)
+                else:
+                    data, anc, addr = *self._sock.recvfrom(65535), ()
             except BlockingIOError:
                 if timeout_s <= 0 or not self._wait_readable(timeout_s):
                     return None
@@ -140,6 +163,12 @@ class UdpTransport(Transport):
                 if timeout_s <= 0:
                     return None
                 continue
+            now = time.monotonic()
+            self.last_rx_monotonic_s = now
+            for level, kind, cdata in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(cdata) >= _TIMESPEC.size:
+                    sec, nsec = _TIMESPEC.unpack_from(cdata)
+                    self.last_rx_monotonic_s = now - min(max(0.0, time.time() - (sec + nsec * 1e-9)), 60.0)
             self.last_sender = addr
             if self.endpoint.scheme == "udpin" and self.follow_sender:
                 self.peer = addr

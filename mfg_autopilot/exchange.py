@@ -55,6 +55,7 @@ __all__ = [
     "PAYLOAD_SIZE",
     "PAYLOAD_VERSION",
     "ExchangeError",
+    "ExchangeStopped",
     "ExchangeTimeout",
     "PayloadError",
     "StateMsg",
@@ -87,6 +88,13 @@ _SWARM_RE = re.compile(r"^[A-Za-z0-9_\-.]+$")
 
 # How often initial_exchange re-queries the init queryables of vehicles still missing (s).
 INIT_QUERY_PERIOD_S = 0.25
+INIT_QUERY_MAX_PERIOD_S = 4.0
+"""The t = 0 exchange queries ``init/*`` at once, then after 0.25 s, doubling the period up
+to this: every waiting vehicle's query is answered by every vehicle, so a fixed 0.25 s
+period costs O(N^2) replies four times a second while the slowest vehicle starts (at
+N = 81 through a router that storm kept the exchange from ever completing). States
+published after a vehicle subscribed reach it at once by the subscription anyway."""
+STOP_POLL_S = 0.25
 
 
 # --------------------------------------------------------------------------------------
@@ -94,6 +102,10 @@ INIT_QUERY_PERIOD_S = 0.25
 # --------------------------------------------------------------------------------------
 class ExchangeError(RuntimeError):
     """A failure of the Zenoh swarm exchange (session, membership or protocol)."""
+
+
+class ExchangeStopped(ExchangeError):
+    """A wait of the exchange was abandoned because its ``stop`` event was set (a signal)."""
 
 
 class ExchangeTimeout(ExchangeError, TimeoutError):
@@ -412,8 +424,9 @@ class SwarmExchange:
         with self._cond:
             self._lost_callbacks.append(callback)
 
-    def wait_present(self, ids: Iterable[int], timeout_s: float) -> frozenset[int]:
-        """Wait until every vehicle in ``ids`` is present; raise :class:`ExchangeTimeout`."""
+    def wait_present(self, ids: Iterable[int], timeout_s: float, stop: threading.Event | None = None) -> frozenset[int]:
+        """Wait until every vehicle in ``ids`` is present; raise :class:`ExchangeTimeout`
+        (or :class:`ExchangeStopped` once ``stop`` is set)."""
         want = frozenset(int(i) for i in ids)
         deadline = time.monotonic() + timeout_s
         with self._cond:
@@ -421,12 +434,14 @@ class SwarmExchange:
                 missing = want - self._present
                 if not missing:
                     return frozenset(self._present)
+                if stop is not None and stop.is_set():
+                    raise ExchangeStopped(f"vehicle {self.vehicle_id}: stopped while waiting for vehicles {sorted(missing)}")
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise ExchangeTimeout(
                         f"vehicle {self.vehicle_id}: vehicles {sorted(missing)} not present "
                         f"after {timeout_s:.1f} s", missing)
-                self._cond.wait(left)
+                self._cond.wait(left if stop is None else min(left, STOP_POLL_S))
 
     def _on_alive_sample(self, sample) -> None:
         vid = _id_from_key(str(sample.key_expr))
@@ -539,15 +554,17 @@ class SwarmExchange:
 
     # ---- MFG: the t = 0 exchange -----------------------------------------------------
     def initial_exchange(self, state: Sequence[float], timeout_s: float,
-                         time_s: float = 0.0) -> dict[int, StateMsg]:
+                         time_s: float = 0.0, stop: threading.Event | None = None) -> dict[int, StateMsg]:
         """The MFG t = 0 exchange; returns the step-0 states of all expected vehicles (incl. own).
 
         Publishes the own step-0 state and from then on answers queries on
         ``mfg/<swarm>/init/<vehicle_id>`` with it. Waits until every expected vehicle is
         present and its step-0 state is known; states published before this vehicle
-        subscribed are fetched by querying ``mfg/<swarm>/init/*`` every
-        ``INIT_QUERY_PERIOD_S`` while some are missing. Counts N - 1 states at step 0.
-        Raises :class:`ExchangeTimeout` naming the missing vehicles.
+        subscribed are fetched by querying ``mfg/<swarm>/init/*`` while some are missing: at
+        once, then after ``INIT_QUERY_PERIOD_S``, the period doubling up to
+        ``INIT_QUERY_MAX_PERIOD_S``. Counts N - 1 states at step 0.
+        Raises :class:`ExchangeTimeout` naming the missing vehicles, or
+        :class:`ExchangeStopped` once ``stop`` is set.
         """
         session = self._require_session()
         own = StateMsg(self.vehicle_id, 0, float(time_s), _as_state(state))
@@ -556,6 +573,7 @@ class SwarmExchange:
         self._publisher.put(payload)
         deadline = time.monotonic() + timeout_s
         next_query = 0.0
+        period = INIT_QUERY_PERIOD_S
         while True:
             with self._cond:
                 others = self.expected_ids - {self.vehicle_id}
@@ -571,11 +589,16 @@ class SwarmExchange:
                         f"vehicle {self.vehicle_id}: t=0 exchange timed out after {timeout_s:.1f} s;"
                         f" missing vehicles {sorted(missing)} (not present: {sorted(absent)},"
                         f" no state: {sorted(no_state)})", missing)
+                if stop is not None and stop.is_set():
+                    raise ExchangeStopped(f"vehicle {self.vehicle_id}: t=0 exchange stopped; still missing "
+                                          f"{sorted(no_state | absent)}")
                 if now < next_query:
-                    self._cond.wait(min(next_query, deadline) - now)
+                    wait = min(next_query, deadline) - now
+                    self._cond.wait(wait if stop is None else min(wait, STOP_POLL_S))
                     continue
             # outside the lock: zenoh may deliver replies on this thread
-            next_query = time.monotonic() + INIT_QUERY_PERIOD_S
+            next_query = time.monotonic() + period
+            period = min(2.0 * period, INIT_QUERY_MAX_PERIOD_S)
             if no_state:
                 session.get(init_key(self.swarm, "*"), self._on_init_reply,
                             target=zenoh.QueryTarget.ALL, timeout=max(INIT_QUERY_PERIOD_S, 0.1))

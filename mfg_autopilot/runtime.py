@@ -22,6 +22,7 @@ The log (JSON Lines, docs/controller_log.md) is flushed after every record.
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import math
@@ -34,11 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mavlink_bridge import BridgeError, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink, load_signing_key
+from mavlink_bridge import BridgeError, HeartbeatTimeout, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink, load_signing_key
 from mavlink_bridge.adsb import adsb_states
 
 from .controller import Neighbours, Observation, make_controller
-from .exchange import ExchangeError, ExchangeTimeout, SwarmExchange, ZenohSettings
+from .exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange, ZenohSettings
 from .params import preset_by_name
 
 __all__ = ["AutopilotConfig", "ControllerLog", "run_autopilot", "LOCKSTEP_PRESTREAM_TIME_BOOT_MS", "AutopilotError"]
@@ -85,6 +86,7 @@ class AutopilotConfig:
     mavlink_key_file: str | None = None       # MAVLink 2 signing key (docs/security.md)
     traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
     traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
+    checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -162,6 +164,7 @@ class Autopilot:
         self.mission_start_unix_s: float | None = None
         self.n_t0 = 0
         self._traffic_sensor: bool | None = None    # proximity sensor on the vehicle (decided at the first step)
+        self._last_checkpoint_monotonic_s = -math.inf
         self._home: HomePosition | None = None
 
     # ---------------------------------------------------------------- phases
@@ -169,7 +172,7 @@ class Autopilot:
         """MFG: the t = 0 exchange (N - 1 states). HJB_d: wait until all N are present."""
         cfg = self.cfg
         if getattr(self.ctrl, "uses_t0_exchange", not self.gossips):
-            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s)
+            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s, stop=self.stop)
             ids = np.array(sorted(got), dtype=np.int64)
             states = np.array([got[i].state for i in ids], dtype=float)
             own = int(np.flatnonzero(ids == cfg.instance)[0])
@@ -177,7 +180,7 @@ class Autopilot:
             self.clog.event("t0_exchange", states_received=len(ids) - 1)
             self.n_t0 = len(ids) - 1
             return self.n_t0
-        self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s)
+        self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s, stop=self.stop)
         self.clog.event("swarm_present", n=cfg.n)
         return 0
 
@@ -239,7 +242,8 @@ class Autopilot:
         ids, states = adsb_states(reports, self._home)
         return Neighbours(states, np.zeros(len(ids), dtype=np.int64), ids)
 
-    def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation, latency_s: float | None) -> None:
+    def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation,
+                latency_s: tuple[float, float, float] | None) -> None:
         w = self.ctrl.weights()
         rec = {"type": "step", "step": k, "time_s": t_s, "state": state, "acc_m_s2": acc,
                "grad_evals": int(info.grad_evals[0]), "mf_evals": int(info.mf_evals[0]),
@@ -252,7 +256,7 @@ class Autopilot:
         if "w_F" in w:
             rec["w_F"] = w["w_F"][0]
         if latency_s is not None:
-            rec["latency_ms"] = latency_s * 1e3
+            rec["latency_ms"], rec["latency_wake_ms"], rec["latency_compute_ms"] = (x * 1e3 for x in latency_s)
         self.clog.write(rec)
 
     def _arrived(self, state: np.ndarray) -> bool:
@@ -274,22 +278,27 @@ class Autopilot:
             obs = self._observe(k, state, t_ms / 1000.0)
             info = self.ctrl.step(obs)
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
+            sp = (float(acc[0]), float(acc[1]), 0.0)
+            # the setpoint goes on the wire first: the vehicle (and the world barrier behind it)
+            # steps while this process writes its log line and checkpoint
+            deadline = time.monotonic() + self.cfg.step_timeout_s
+            self.link.send_acc_setpoint(sp, t_ms)
             self._record(k, t_ms / 1000.0, state, acc, info, obs, None)
-            p = self._lockstep_exchange_setpoint(acc, t_ms)
             self._checkpoint(k)
+            p = self._lockstep_await_position(sp, t_ms, deadline)
 
-    def _lockstep_exchange_setpoint(self, acc: np.ndarray, t_ms: int) -> LocalPositionNed:
-        """Send the step's setpoint stamped t_ms and wait for the position stamped after it,
-        re-sending on silence (UDP loss); the vehicle ignores duplicates."""
-        deadline = time.monotonic() + self.cfg.step_timeout_s
+    def _lockstep_await_position(self, sp: tuple[float, float, float], t_ms: int, deadline: float) -> LocalPositionNed:
+        """Wait for the position stamped after t_ms (the setpoint stamped t_ms was sent),
+        re-sending the setpoint every step_retry_s of silence (UDP loss; the vehicle ignores
+        duplicates); AutopilotError at ``deadline`` (monotonic)."""
         while True:
-            self.link.send_acc_setpoint((float(acc[0]), float(acc[1]), 0.0), t_ms)
             try:
-                return self.link.wait_local_position(t_ms, timeout_s=self.cfg.step_retry_s)
+                return self.link.wait_local_position(t_ms, timeout_s=max(0.0, min(self.cfg.step_retry_s, deadline - time.monotonic())))
             except TelemetryTimeout:
-                if time.monotonic() > deadline or self.stop.is_set():
+                if time.monotonic() >= deadline or self.stop.is_set():
                     raise AutopilotError(f"vehicle {self.cfg.system_id} did not advance past t = {t_ms} ms within "
                                          f"{self.cfg.step_timeout_s} s of lockstep setpoints; is it still in OFFBOARD?") from None
+            self.link.send_acc_setpoint(sp, t_ms)
 
     def run_realtime(self) -> str:
         """Control steps on the mission clock: step k at mission start + k dt (wall time), so
@@ -331,15 +340,22 @@ class Autopilot:
                 stale = False
                 self.clog.event("telemetry_back")
                 self._resume_offboard()
+            t_woken = time.monotonic()
             state = _state_of(p)
             last_k = k
             obs = self._observe(k, state, p.time_boot_ms / 1000.0)
             info = self.ctrl.step(obs)
+            t_computed = time.monotonic()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             sp = (float(acc[0]), float(acc[1]), 0.0)
+            sent_monotonic_s = self.link.send_acc_setpoint(sp)
             self.link.set_held_setpoint(sp)
-            self.link.send_acc_setpoint(sp)
-            latency = time.monotonic() - p.received_monotonic_s
+            # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
+            # transport has one) -> this setpoint handed to the kernel; logging and the
+            # checkpoint come after it. Split: until this loop had the position (receive
+            # thread, wake-up), the observation + control step, the send.
+            latency = (sent_monotonic_s - p.received_monotonic_s,
+                       t_woken - p.received_monotonic_s, t_computed - t_woken)
             self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
             self._checkpoint(k)
             ended = self._check_mode()
@@ -381,11 +397,19 @@ class Autopilot:
         return {"swarm": c.swarm, "instance": c.instance, "n": c.n, "mode": c.mode, "preset": c.preset,
                 "lockstep": c.lockstep, "sites": None if c.sites_m is None else [list(x) for x in c.sites_m]}
 
-    def _checkpoint(self, k: int) -> None:
+    def _checkpoint(self, k: int, force: bool = False) -> None:
         """Persist what must survive a controller crash (the t = 0 exchange as held by the
-        controller, its learned weights, the mission clock), atomically."""
+        controller, its learned weights, the mission clock), atomically; at most once per
+        ``checkpoint_interval_s`` of wall time unless ``force`` (step 0 always: the first
+        call). A restarted controller resumes from the newest checkpoint, so from the
+        controller state of at most that long ago; the mission clock (real time) and the
+        vehicle's simulated time (lockstep) still place it on the right step."""
         if not self.cfg.state_dir:
             return
+        now = time.monotonic()
+        if not force and now - self._last_checkpoint_monotonic_s < self.cfg.checkpoint_interval_s:
+            return
+        self._last_checkpoint_monotonic_s = now
         blob = pickle.dumps({"version": 1, "identity": self._identity(), "step": k, "ctrl": self.ctrl,
                              "mission_start_unix_s": self.mission_start_unix_s, "states_received_t0": self.n_t0},
                             protocol=pickle.HIGHEST_PROTOCOL)
@@ -468,16 +492,28 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
         with SwarmExchange(cfg.zenoh, _swarm_key(cfg.swarm), cfg.instance, cfg.n) as exchange:
             link = VehicleLink.open(cfg.connect, target_system=cfg.system_id, target_component=1,
                                     source_system=cfg.system_id, tlog_path=cfg.tlog_path, signing_key=key)
-            link.wait_heartbeat(cfg.vehicle_timeout_s)
+            # start-up waits are long on a loaded machine, so they are sliced to notice a signal
+            if _interruptible(lambda t: link.wait_heartbeat(t), cfg.vehicle_timeout_s, stop, HeartbeatTimeout,
+                              lambda: HeartbeatTimeout(cfg.system_id, 1, cfg.vehicle_timeout_s)) is None:
+                raise _Stopped()
             clog.event("vehicle_found", system_id=cfg.system_id)
-            p0 = link.wait_local_position(None, cfg.vehicle_timeout_s)
+            p0 = _interruptible(lambda t: link.wait_local_position(None, t), cfg.vehicle_timeout_s, stop, TelemetryTimeout,
+                                lambda: TelemetryTimeout("LOCAL_POSITION_NED", cfg.system_id, cfg.vehicle_timeout_s))
+            if p0 is None:
+                raise _Stopped()
             s0 = _state_of(p0)
             ap = Autopilot(cfg, link, exchange, clog, stop)
             try:
                 n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
+            except ExchangeStopped:
+                raise _Stopped() from None
             except ExchangeTimeout as exc:
                 where = f"; check that --zenoh-connect {list(cfg.zenoh.connect)} is reachable" if cfg.zenoh.connect else ""
                 raise AutopilotError(f"{exc}{where}") from None
+            # start-up garbage (imports, the t = 0 exchange and plan) is collected once and
+            # frozen, so the cyclic GC's full collections during the flight have little to scan
+            gc.collect()
+            gc.freeze()
             if stop.is_set():
                 reason = "signal"
             else:
@@ -487,6 +523,10 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
                         "states_received_total": int(exchange.states_received_total),
                         "states_received_t0": n_t0,
                         "destination_m": np.asarray(ap.ctrl.destinations_m, dtype=float)[0]})
+        return 0
+    except _Stopped:
+        reason = "signal"
+        clog.write({"type": "end", "reason": reason, "wall_s": time.time(), "note": "stopped during start-up"})
         return 0
     except (BridgeError, AutopilotError, ExchangeError, TimeoutError, ValueError) as exc:
         clog.event("error", error=f"{type(exc).__name__}: {exc}")
@@ -499,13 +539,32 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     finally:
         if link is not None:
             try:
-                if reason != "error" or link.latest_heartbeat() is not None:
+                if link.latest_heartbeat() is not None:        # a vehicle never heard of is not commanded
                     link.hold(cfg.command_timeout_s if reason != "error" else 3.0)
                     clog.event("hold", reason=reason)
             except BridgeError as exc:
                 clog.event("hold_failed", error=str(exc))
             link.close()
         clog.close()
+
+
+class _Stopped(Exception):
+    """A signal arrived during a start-up wait."""
+
+
+def _interruptible(wait, timeout_s: float, stop: threading.Event, timeout_error: type, on_timeout, slice_s: float = 0.5):
+    """``wait(t)`` in slices of ``slice_s`` until it returns, ``stop`` is set (returns None),
+    or ``timeout_s`` passes (raises ``on_timeout()``: the error for the whole wait)."""
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise on_timeout()
+        try:
+            return wait(min(slice_s, left))
+        except timeout_error:
+            continue
+    return None
 
 
 def _swarm_key(name: str) -> str:

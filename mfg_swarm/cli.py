@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--mavlink-key", default=None, metavar="FILE",
                      help="MAVLink 2 signing between every controller and its vehicle (64 hex chars, mode 600)")
     run.add_argument("--time-limit-s", type=float, default=None, help="stop the swarm after this wall time")
+    run.add_argument("--startup-timeout-s", type=float, default=None,
+                     help="every controller must reach OFFBOARD within this (default: scales with N, the cores and "
+                          "the load average, 120 s to 30 min); also each controller's start-up waits")
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-plot", action="store_true", help="do not draw the figures after the flight")
 
@@ -135,6 +138,7 @@ def _cmd_run(args) -> int:
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), lockstep=args.lockstep,
                     zenoh_router=args.zenoh_router, mavlink_base_port=args.mavlink_base_port,
                     gcs_url="udpout:127.0.0.1:14550" if args.gcs else "none", time_limit_s=args.time_limit_s,
+                    startup_timeout_s=args.startup_timeout_s,
                     progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
                     zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config)
     if args.mavlink_key:
@@ -160,6 +164,8 @@ def _cmd_run(args) -> int:
             figures = ", figures: " + ", ".join(p.name for p in plot_run(out))
         except Exception as exc:  # figures are a convenience; the results are already written
             print(f"mfg-swarm: could not draw figures: {exc}", file=sys.stderr)
+    if metrics.get("partial"):
+        print(f"mfg-swarm: the run did not complete: {metrics.get('end_reason')}", file=sys.stderr)
     state = "PARTIAL results" if metrics.get("partial") else "results"
     print(f"{state} in {out}/ (metrics.json, trajectories.npz, vehicles/*.tlog, controllers/*.jsonl{figures})", file=sys.stderr)
     return 1 if metrics.get("partial") else 0

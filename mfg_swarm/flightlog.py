@@ -41,7 +41,7 @@ def read_vehicle_tlog(path: str | Path, system_id: int) -> VehicleTrack:
         log.warning("no tlog at %s (the vehicle process never started?)", path)
         packets = []
     else:
-        packets = read_tlog(path)
+        packets = read_tlog(path, only=("LOCAL_POSITION_NED", "SET_POSITION_TARGET_LOCAL_NED"))
     for unix_s, r in packets:
         m = r.msg
         if isinstance(m, LocalPositionNed) and r.src_system == system_id:

@@ -45,6 +45,27 @@ mode) instead of a full peer mesh: N = 81 peers on loopback (3,240 links) did no
 their t = 0 exchange within 120 s on a 2-core machine."""
 
 
+START_CPU_S_PER_PAIR = 1.5
+"""CPU seconds one vehicle pair needs to start on a quiet machine (a mock imports in ~0.3 s,
+a controller in ~0.8 s, then its link, Zenoh session and t = 0 exchange): the unit of the
+start-up budget."""
+
+
+def default_startup_timeout_s(n: int, cores: int | None = None, load1: float | None = None) -> float:
+    """Start-up budget for ``n`` vehicle pairs started at once: 60 s plus three times the CPU
+    time they need, spread over the machine's cores and stretched by how busy the machine
+    already is (1-min load average per core, at least 1); at most 30 min. E.g. N = 81 on an
+    idle 2-core machine: 242 s; N = 9: 80 s (at least 120 s is kept, the old fixed value)."""
+    cores = max(1, int(cores or os.cpu_count() or 1))
+    if load1 is None:
+        try:
+            load1 = os.getloadavg()[0]
+        except OSError:
+            load1 = 0.0
+    busy = max(1.0, float(load1) / cores)
+    return float(min(1800.0, max(120.0, 60.0 + 3.0 * n * START_CPU_S_PER_PAIR / cores * busy)))
+
+
 class LaunchError(RuntimeError):
     """The swarm could not be started or run; the message says what and how to fix it."""
 
@@ -65,7 +86,7 @@ class RunConfig:
     gcs_url: str = "none"
     physics_dt_s: float = 0.1
     time_limit_s: float | None = None
-    startup_timeout_s: float = 120.0
+    startup_timeout_s: float | None = None    # None: default_startup_timeout_s(N) (scales with N and the machine)
     progress: bool | None = None
     extra_controller_args: tuple[str, ...] = ()
     mavlink_key_file: str | None = None       # MAVLink 2 signing between every controller and its vehicle
@@ -153,6 +174,49 @@ class _Child:
 
     def close(self) -> None:
         self._fh.close()
+
+
+def _last_line(path: Path) -> str:
+    """The last non-empty line of a child's stderr log (what it said before it stopped)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            fh.seek(max(0, fh.tell() - 4096))
+            lines = [ln.strip() for ln in fh.read().decode("utf-8", "replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1][-300:] if lines else ""
+
+
+def _named(children: list["_Child"], most: int = 5) -> str:
+    """'controller3 (exit 1: <its last stderr line>), ...' for the first ``most``."""
+    parts = []
+    for c in children[:most]:
+        code = c.p.poll()
+        what = "running" if code is None else f"exit {code}"
+        last = _last_line(c.log_path)
+        parts.append(f"{c.name} ({what}{': ' + last if last else ''}; log {c.log_path})")
+    more = f" and {len(children) - most} more" if len(children) > most else ""
+    return ", ".join(parts) + more
+
+
+_STARTUP_EVENTS = ("vehicle_found", "t0_exchange", "swarm_present", "armed", "offboard")
+
+
+def _startup_report(controllers: list["_Child"], status: list[dict], vehicles: list["_Child"]) -> str:
+    """Which controllers did not reach OFFBOARD, grouped by the last start-up stage they logged."""
+    stages: dict[str, list[int]] = {}
+    for i, s_ in enumerate(status):
+        if s_.get("offboard"):
+            continue
+        last = next((e for e in reversed(_STARTUP_EVENTS) if s_.get(e)), "nothing logged (process starting)")
+        stages.setdefault(last, []).append(i)
+    parts = [f"{len(ids)} controller(s) last at '{stage}': {ids[:20]}{' ...' if len(ids) > 20 else ''}"
+             for stage, ids in stages.items()]
+    stuck = [controllers[ids[0]] for ids in stages.values()]
+    dead_v = [v.name for v in vehicles if not v.alive()]
+    return ("; ".join(parts) + (f"; vehicles not running: {dead_v}" if dead_v else "")
+            + (f"; e.g. {_named(stuck, most=2)}" if stuck else ""))
 
 
 def _stop_all(children: list[_Child], sig: int, timeout_s: float) -> list[str]:
@@ -256,6 +320,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         use_router = True
 
     py = cfg.python
+    startup_s = cfg.startup_timeout_s if cfg.startup_timeout_s is not None else default_startup_timeout_s(n)
     wind = plant_params_for(preset, cfg.physics_dt_s).wind
     # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
     sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
@@ -283,7 +348,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         if world_port is not None:
             world.append(_Child("world", [py, "-m", "mock_vehicle.world", "--listen", f"127.0.0.1:{world_port}", "--n", str(n),
                                           "--sensor-range-m", repr(float(sensor_range_m)), "--log-level", "WARNING",
-                                          "--deadline-s", repr(max(60.0, float(cfg.startup_timeout_s)))]
+                                          "--deadline-s", repr(max(60.0, float(startup_s)))]
                                 + (["--lockstep"] if cfg.lockstep else []), out / "stderr" / "world.log"))
         for i in range(n):
             x, y = (float(v) for v in sc.initial_pos_m[i])
@@ -307,7 +372,10 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", cfg.swarm or f"run{os.getpid()}",
                     "--mission", str(out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
                     "--state-dir", str(out / "controllers" / f"state{i}"),
-                    "--log-level", "WARNING", "--exchange-timeout-s", repr(cfg.startup_timeout_s)]
+                    "--log-level", "WARNING", "--exchange-timeout-s", repr(float(startup_s)),
+                    # every start-up wait gets the start-up budget: with 2N processes starting on a
+                    # few cores a vehicle (or the swarm's first lockstep step) can be that late
+                    "--vehicle-timeout-s", repr(float(startup_s)), "--step-timeout-s", repr(max(30.0, float(startup_s)))]
             if cfg.range_m is not None:
                 argv += ["--range-m", repr(float(cfg.range_m))]
             if cfg.lockstep:
@@ -330,8 +398,10 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         offsets = [0] * n
         status = [dict() for _ in range(n)]
         limit = cfg.time_limit_s if cfg.time_limit_s is not None else (
-            cfg.startup_timeout_s + (cfg.steps * preset.dt_s * 2 + 60 if not cfg.lockstep else 30 + cfg.steps * 2.0 * max(1, n / 10)))
+            startup_s + (cfg.steps * preset.dt_s * 2 + 60 if not cfg.lockstep else 30 + cfg.steps * 2.0 * max(1, n / 10)))
         deadline = time.monotonic() + limit
+        startup_deadline = time.monotonic() + startup_s
+        started = False
         reason = "completed"
         while True:
             _controller_status(ctrl_logs, offsets, status)
@@ -347,10 +417,23 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
             if interrupted["sig"] is not None:
                 reason = "interrupted"
                 break
-            dead_vehicles = [v.name for v in vehicles + world if not v.alive()]
+            dead_vehicles = [v for v in vehicles + world + router if not v.alive()]
             if dead_vehicles:
-                reason = f"vehicle process exited early: {', '.join(dead_vehicles)}"
+                reason = f"process exited early: {_named(dead_vehicles)}"
                 break
+            if not started:
+                # start-up: every controller must reach OFFBOARD within the start-up budget; a
+                # controller that exits before (e.g. the t = 0 exchange timed out) ends the run
+                failed = [c for c, d, s_ in zip(controllers, done, status) if d and not s_.get("offboard")]
+                if failed:
+                    reason = f"start-up failed: {_named(failed)}"
+                    break
+                if offb == n:
+                    started = True
+                elif time.monotonic() > startup_deadline:
+                    reason = (f"start-up timed out after {startup_s:.0f} s (--startup-timeout-s): "
+                              + _startup_report(controllers, status, vehicles))
+                    break
             if time.monotonic() > deadline:
                 reason = f"time limit {limit:.0f} s"
                 break

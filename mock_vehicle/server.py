@@ -1,9 +1,13 @@
 """The mock vehicle's I/O loop: MAVLink ports (onboard + GCS), one tlog, select() on the
-sockets, ``MockVehicle.tick`` between packets. Single-threaded; stops when ``stop`` is set
-(the CLI sets it on SIGINT/SIGTERM) and closes the tlog cleanly."""
+sockets, ``MockVehicle.tick`` between packets. Single-threaded and event-driven: it blocks
+in select() until a packet arrives or the vehicle's next deadline (``next_deadline``: the
+next telemetry message, physics sub-step, failsafe check, re-send) is due, never longer than
+``max_wait_s`` (how quickly a set ``stop`` is noticed). Stops when ``stop`` is set (the CLI
+sets it on SIGINT/SIGTERM) and closes the tlog cleanly."""
 
 from __future__ import annotations
 
+import gc
 import logging
 import select
 import threading
@@ -25,7 +29,7 @@ def run_vehicle(
     urls: list[str],
     stop: threading.Event,
     tlog_path: str | None = None,
-    max_wait_s: float = 0.02,
+    max_wait_s: float = 0.25,
     signing: SigningConfig | None = None,
     world_url: str | None = None,
 ) -> MockVehicle:
@@ -51,7 +55,11 @@ def run_vehicle(
             for p in ports if port is None else [port]:
                 p.send(msg)  # type: ignore[union-attr]
 
-        vehicle = MockVehicle(cfg, send, require_signed=signing is not None)
+        def send_batch(msgs: list[Message], port: object | None) -> None:
+            for p in ports if port is None else [port]:
+                p.send_many(msgs)  # type: ignore[union-attr]
+
+        vehicle = MockVehicle(cfg, send, require_signed=signing is not None, send_batch=send_batch)
         if world_url is not None:
             world = WorldClient(world_url)
             vehicle.attach_world(lambda t_ms, state: world.report(cfg.instance, t_ms, state))  # type: ignore[union-attr]
@@ -63,6 +71,8 @@ def run_vehicle(
             vehicle.state[2:4].tolist(),
             "lockstep" if cfg.lockstep else "real-time",
         )
+        gc.collect()
+        gc.freeze()  # start-up objects (imports, dialect tables) are never scanned again
         while not stop.is_set():
             wait_s = min(max(0.0, vehicle.next_deadline() - time.monotonic()), max_wait_s)
             try:

@@ -103,6 +103,9 @@ SIGNED_COMMAND_MESSAGES = (CommandLong, CommandInt, SetMode, SetPositionTargetLo
 """Messages that command the vehicle; with signing on, each has its own rejection kind."""
 
 _ID = MSG_ID_BY_NAME
+FAST_TELEMETRY = ("local_position", "attitude", "global_position")
+"""In lockstep these follow the steps (plus ``lockstep_resend_hz`` re-sends while idle)
+instead of their wall-clock rates: between steps the state does not change."""
 TELEMETRY_IDS = {
     _ID["HEARTBEAT"]: "heartbeat",
     _ID["SYS_STATUS"]: "sys_status",
@@ -199,7 +202,8 @@ def check_setpoint(sp: SetPositionTargetLocalNed, system_id: int, component_id: 
 
 
 class MockVehicle:
-    """The PX4-like vehicle (see module docstring). ``send(msg, port)``: port None = all."""
+    """The PX4-like vehicle (see module docstring). ``send(msg, port)``: port None = all;
+    ``send_batch(msgs, port)``, if given, sends several in order (e.g. in one datagram)."""
 
     def __init__(
         self,
@@ -207,8 +211,10 @@ class MockVehicle:
         send: Callable[[Message, object | None], None],
         clock: Callable[[], float] = time.monotonic,
         require_signed: bool = False,
+        send_batch: Callable[[list[Message], object | None], None] | None = None,
     ) -> None:
         self.cfg = cfg
+        self._send_batch = send_batch   # optional: several messages at once, in order (fewer datagrams)
         self.require_signed = bool(require_signed)
         self._errors_logged: set[tuple[str, str]] = set()
         self._send = send
@@ -265,6 +271,7 @@ class MockVehicle:
         self._world_reported_at = -math.inf
         self._traffic: tuple[int, list[Message]] | None = None   # (time_boot_ms, ADSB_VEHICLE... + marker)
         self._next_traffic = self._t0
+        self._traffic_resend_s = self._traffic_period_s()   # lockstep: idle re-send interval, backs off
 
     # ------------------------------------------------------------------ clocks
     def wall_s(self) -> float:
@@ -328,8 +335,7 @@ class MockVehicle:
                 self.setpoint = sp
                 self._lockstep_step()
             elif self._world_pending_ms is None:  # idempotent retry answer (none while the world has not answered)
-                self._send_traffic(port)
-                self._send(self._local_position(), port)
+                self._send_many(self._traffic_msgs() + [self._local_position()], port)
             return
         now = self.wall_s()
         if self._stream_start_wall is None or now - self._last_sp_wall > OFFBOARD_MIN_RATE_GAP_S:
@@ -551,14 +557,35 @@ class MockVehicle:
         self._step(self._dt_ms / 1000.0)
         self.step_index += 1
         self._last_sp_sim_s = self.sim_time_s()
+        self._stepped_now()
         if self._world_report is not None:
             self._report_to_world()
             return
-        for m in self._fast_telemetry():
-            self._send(m, None)
+        self._send_many(self._fast_telemetry(), None)
+
+    def _resend_allowed(self) -> bool:
+        """Lockstep: the current position may be re-sent unless a step's telemetry waits for
+        the world's answer (t = 0, the frozen initial state, may always be re-sent)."""
+        return self._world_pending_ms is None or self._world_pending_ms == 0
+
+    def _stepped_now(self) -> None:
+        """Lockstep: a step just happened, so its telemetry (and traffic set) goes out now: the
+        wall-clock re-sends are only for a vehicle that is idle (docs/lockstep.md)."""
+        now = self._clock()
+        if self.cfg.lockstep_resend_hz > 0:
+            self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
+        self._traffic_resend_s = self._traffic_period_s()
+        self._next_traffic = now + self._traffic_resend_s
+
+    def _traffic_period_s(self) -> float:
+        return 1.0 / self.cfg.traffic_rate_hz if self.cfg.traffic_rate_hz > 0 else math.inf
 
     # ------------------------------------------------------------------ proximity sensor (docs/proximity.md)
     WORLD_RETRY_S = 0.5
+    LOCKSTEP_TRAFFIC_RESEND_MAX_S = 2.0
+    """Lockstep: an idle vehicle re-sends its current traffic set at ``traffic_rate_hz``, the
+    interval doubling up to this (a set is up to N ADSB_VEHICLE messages; a swarm waiting
+    minutes for its slowest member must not fill every tlog with copies)."""
 
     def attach_world(self, report: Callable[[int, np.ndarray], None]) -> None:
         """Give the vehicle a proximity sensor: ``report(time_boot_ms, state_f32 (4,))`` sends
@@ -583,15 +610,26 @@ class MockVehicle:
                                                    self.cfg.home_alt_amsl_m + self.cfg.altitude_m))
         msgs.append(NamedValueInt(time_boot_ms & 0xFFFFFFFF, TRAFFIC_MARKER_NAME, len(msgs)))
         self._traffic = (time_boot_ms, msgs)
-        self._send_traffic(None)
         if self.cfg.lockstep:
+            self._stepped_now()
             self._world_pending_ms = None
-            for m in self._fast_telemetry():
-                self._send(m, None)
+            self._send_many(msgs + self._fast_telemetry(), None)   # the set, its marker, then the step's telemetry
+        else:
+            self._send_many(msgs, None)
+
+    def _traffic_msgs(self) -> list[Message]:
+        return [] if self._traffic is None else list(self._traffic[1])
 
     def _send_traffic(self, port: object | None) -> None:
-        if self._traffic is not None:
-            for m in self._traffic[1]:
+        self._send_many(self._traffic_msgs(), port)
+
+    def _send_many(self, msgs: list[Message], port: object | None) -> None:
+        """Send ``msgs`` in order; the I/O loop may pack them into few datagrams (PX4 also
+        fills a UDP datagram with several MAVLink packets)."""
+        if self._send_batch is not None:
+            self._send_batch(msgs, port)
+        else:
+            for m in msgs:
                 self._send(m, port)
 
     def _world_tick(self, now: float) -> None:
@@ -601,8 +639,10 @@ class MockVehicle:
             if self._world_pending_ms is not None and now - self._world_reported_at > self.WORLD_RETRY_S:
                 self._report_to_world()  # no answer yet: the world answers duplicates again
             elif self._world_pending_ms is None and self.cfg.traffic_rate_hz > 0 and now >= self._next_traffic:
-                self._next_traffic = now + 1.0 / self.cfg.traffic_rate_hz
-                self._send_traffic(None)  # re-send the current set (a controller may have missed it)
+                # idle (no step for a while): re-send the current set, a controller may have missed it
+                self._traffic_resend_s = min(2.0 * self._traffic_resend_s, max(self.LOCKSTEP_TRAFFIC_RESEND_MAX_S, self._traffic_period_s()))
+                self._next_traffic = now + self._traffic_resend_s
+                self._send_traffic(None)
         elif self.cfg.traffic_rate_hz > 0 and now >= self._next_traffic:
             self._next_traffic = now + 1.0 / self.cfg.traffic_rate_hz
             self._report_to_world()
@@ -630,25 +670,36 @@ class MockVehicle:
         self._periodic(now)
 
     def _periodic(self, now: float) -> None:
-        lockstep_fast = self.cfg.lockstep and self.mode == PX4_OFFBOARD and self.armed
+        lockstep = self.cfg.lockstep
         for kind, interval in self._intervals_s.items():
             if interval == math.inf or now < self._next_due[kind]:
                 continue
-            if lockstep_fast and kind in ("local_position", "attitude", "global_position"):
+            if lockstep and kind in FAST_TELEMETRY:
                 continue  # in lockstep these follow the steps (plus the slow re-send below)
             self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
             self._send(self._telemetry(kind), None)
         self._world_tick(now)
-        if lockstep_fast and self._world_pending_ms is None and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
+        if lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
             self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
-            for m in self._fast_telemetry():
-                self._send(m, None)
+            self._send_many(self._fast_telemetry(), None)
 
     def next_deadline(self) -> float:
-        """Monotonic time of the next periodic event (for the I/O loop's select timeout)."""
-        t = min(self._next_due[k] for k, iv in self._intervals_s.items() if iv != math.inf) if self._intervals_s else math.inf
+        """Monotonic time of the next periodic event (for the I/O loop's select timeout): the
+        loop sleeps until then or until a packet arrives, so an idle or lockstep vehicle does not
+        spin. Every event ``tick`` acts on has its deadline here."""
+        t = min((self._next_due[k] for k, iv in self._intervals_s.items()
+                 if iv != math.inf and not (self.cfg.lockstep and k in FAST_TELEMETRY)), default=math.inf)
         if not self.cfg.lockstep:
             t = min(t, self._t0 + self._phys_t_s + self.cfg.physics_dt_s)
+            if self.mode == PX4_OFFBOARD:  # the offboard-loss failsafe, on time
+                t = min(t, self._t0 + self._last_sp_sim_s + self.params["COM_OF_LOSS_T"] + 1e-4)
+        if self.cfg.lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0:
+            t = min(t, self._next_resend)
+        if self._world_report is not None:
+            if self.cfg.lockstep and self._world_pending_ms is not None:
+                t = min(t, self._world_reported_at + self.WORLD_RETRY_S)
+            elif self.cfg.traffic_rate_hz > 0:
+                t = min(t, self._next_traffic)
         return t
 
     # ------------------------------------------------------------------ output

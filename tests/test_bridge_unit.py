@@ -265,3 +265,102 @@ def test_mode_change_acked_but_never_seen_is_mode_not_confirmed():
         stop.set()
         th.join(2.0)
         fake.close()
+
+
+# ---------------------------------------------------------------- hot-path I/O (issue 8)
+def _telemetry_mix(seed: int):
+    import numpy as np
+
+    from mavlink_bridge import ExtendedSysState, NamedValueInt, SysStatus
+    from mock_vehicle.proximity import traffic_reports
+
+    rng = np.random.default_rng(seed)
+    msgs = list(traffic_reports(np.arange(30), rng.normal(size=(30, 4)) * 50, 1500, (47.397742, 8.545594), 498.0))
+    return msgs + [NamedValueInt(1500, "TRAFFIC_N", 30), LocalPositionNed(1500, 1.5, -2.25, -10.0, 0.1, 0.0, 0.0),
+                   Attitude(1500, 0.1, -0.2, 0.0), GlobalPositionInt(1500, 47.4, 8.5, 498.0, 10.0, 1.0, -1.0, 0.0, None),
+                   Heartbeat(), acceleration_setpoint(7, 1, (0.5, -0.25, 0.0), 1500), ExtendedSysState(0, 2),
+                   SysStatus(load_permille=100, voltage_battery_v=16.2, battery_remaining_pct=100)]
+
+
+def test_fast_datagram_decoding_equals_pymavlink():
+    """Given datagrams of several telemetry packets, decode_datagram's fast path gives exactly
+    what pymavlink's parser gives (message, ids, raw bytes, signature status, stamp); a
+    datagram with a bad CRC or a type off the fast path still goes through pymavlink."""
+    import random
+
+    from mavlink_bridge import codec as C
+
+    packets = [MavCodec(7, 1).encode(m) for m in _telemetry_mix(1)]
+    for trial in range(100):
+        sel = random.Random(trial).sample(packets, random.Random(trial).randint(1, 25))
+        data = b"".join(sel)
+        fast = C._decode_fast(data, 5.0)
+        ref = MavCodec(1, 1).decode(data, 5.0)
+        assert fast is not None and len(fast) == len(ref) == len(sel)
+        for a, b in zip(fast, ref):
+            assert (a.msg, a.src_system, a.src_component, a.raw, a.signature) == (b.msg, b.src_system, b.src_component, b.raw, b.signature)
+            assert a.msg.received_monotonic_s == b.msg.received_monotonic_s == 5.0
+    bad = bytearray(packets[0])
+    bad[-1] ^= 1
+    assert C._decode_fast(bytes(bad), 0.0) is None
+    assert isinstance(MavCodec(1, 1).decode_datagram(bytes(bad))[0].msg, BadData)
+    assert C._decode_fast(MavCodec(1, 1).encode(StatusText(4, "hello")), 0.0) is None
+    assert C._decode_fast(packets[0][:-3], 0.0) is None
+
+
+def test_selective_tlog_read_equals_the_full_read(tmp_path):
+    """read_tlog(only=...) returns the same records as the pymavlink read, filtered, also when
+    the last record was cut short by a killed writer."""
+    path = tmp_path / "t.tlog"
+    codec = MavCodec(3, 1)
+    with TlogWriter(path) as tlog:
+        for i, m in enumerate(_telemetry_mix(2) * 3):
+            tlog.write(codec.encode(m), unix_time_s=1_700_000_000.0 + 0.01 * i)
+    with open(path, "ab") as fh:
+        fh.write(b"\x00" * 8 + codec.encode(LocalPositionNed(9, 1.0, 2.0, 3.0, 0.0, 0.0, 0.0))[:7])
+    only = ("LOCAL_POSITION_NED", "SET_POSITION_TARGET_LOCAL_NED")
+    got = read_tlog(path, only=only)
+    ref = [(t, r) for t, r in read_tlog(path) if r.msg.MSG_NAME in only]
+    assert len(got) == len(ref) == 6
+    assert [(t, r.msg, r.src_system, r.raw) for t, r in got] == [(t, r.msg, r.src_system, r.raw) for t, r in ref]
+
+
+def test_send_many_packs_datagrams_in_order_and_logs_every_packet(tmp_path):
+    rx_port = free_udp_port()
+    rx = MavlinkPort.open(f"udpin:127.0.0.1:{rx_port}", 2, 1)
+    with TlogWriter(tmp_path / "tx.tlog") as tlog:
+        tx = MavlinkPort.open(f"udpout:127.0.0.1:{rx_port}", 1, 1, tlog)
+        msgs = _telemetry_mix(3)
+        tx.send_many(msgs)
+        got, datagrams = [], 0
+        while len(got) < len(msgs):
+            r = rx.recv(2.0)
+            assert r, "datagram lost on loopback"
+            datagrams += 1
+            got += [x.msg for x in r]
+        tx.close()
+    rx.close()
+    logged = [r.msg for _, r in read_tlog(tmp_path / "tx.tlog")]
+    assert got == logged and [type(m) for m in got] == [type(m) for m in msgs]   # in order (floats as float32)
+    assert 2 <= datagrams < len(msgs) // 4                  # packed, each below MAX_DATAGRAM_BYTES
+
+
+def test_received_stamp_is_the_arrival_not_the_read():
+    """A datagram read 50 ms after it arrived carries its arrival time (kernel timestamp)."""
+    from mavlink_bridge.transport import open_transport
+
+    a = open_transport("udpin:127.0.0.1:0")
+    b = open_transport(f"udpout:127.0.0.1:{a.local_address[1]}")
+    try:
+        b.send(MavCodec(1, 1).encode(Heartbeat()))
+        sent = time.monotonic()
+        time.sleep(0.05)
+        assert a.recv(1.0) is not None
+        read = time.monotonic()
+        if a._kernel_stamps:
+            assert a.last_rx_monotonic_s < sent + 0.02 and read - a.last_rx_monotonic_s >= 0.04
+        else:
+            assert a.last_rx_monotonic_s <= read
+    finally:
+        a.close()
+        b.close()

@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _zenoh_helpers import ep, free_tcp_port
 from mfg_autopilot.exchange import (
     PAYLOAD_SIZE,
+    ExchangeStopped,
     ExchangeTimeout,
     PayloadError,
     StateMsg,
@@ -167,6 +168,21 @@ def test_initial_exchange_timeout_names_missing(swarm_name):
                          lambda: b.initial_exchange([1, 0, 0, 0], timeout_s=1.0)])
         assert ei.value.missing == (2, 3)
         assert time.monotonic() - t0 < 3.0
+
+
+def test_initial_exchange_and_wait_present_give_up_when_stopped(swarm_name):
+    """A signal during the t = 0 exchange (the stop event) ends the wait within a fraction of
+    a second instead of at the exchange timeout."""
+    (a,) = make_swarm(swarm_name, 1, n_expected=3)
+    stop = threading.Event()
+    with Opened([a]):
+        threading.Timer(0.3, stop.set).start()
+        t0 = time.monotonic()
+        with pytest.raises(ExchangeStopped, match=r"still missing \[1, 2\]"):
+            a.initial_exchange([0, 0, 0, 0], timeout_s=60.0, stop=stop)
+        with pytest.raises(ExchangeStopped):
+            a.wait_present(range(3), timeout_s=60.0, stop=stop)
+        assert time.monotonic() - t0 < 5.0
 
 
 def test_present_and_lost(swarm_name):

@@ -183,3 +183,63 @@ def test_heartbeat_reports_px4_modes():
     assert hb.px4_mode == PX4_HOLD and not hb.armed
     v.handle(cmd(400, 1))
     assert [m for m in sent if isinstance(m, Heartbeat)][-1].armed
+
+
+def test_lockstep_loop_sleeps_until_its_next_event_and_resends_only_when_idle():
+    """Given a lockstep vehicle stepping in OFFBOARD, its next deadline is never in the past
+    (the I/O loop blocks instead of spinning) and a step's telemetry is not followed by
+    wall-clock copies; an idle vehicle re-sends its position at lockstep_resend_hz."""
+    v, clock, sent = make(lockstep=True, dt_s=0.5, seed=3, lockstep_resend_hz=5.0)
+    v.handle(cmd(400, 1))
+    stream(v, clock, 1.2, t_ms=999)
+    v.handle(cmd(176, 1, 6))
+    assert v.mode == PX4_OFFBOARD
+    for k in range(20):                                # a controller stepping every 50 ms
+        v.handle(rx(acceleration_setpoint(1, 1, (1.0, 0.0, 0.0), k * 500)))
+        assert v.next_deadline() > clock.t, "a deadline in the past makes the loop spin"
+        clock.t += 0.05
+        v.tick()
+    lp = [m.time_boot_ms for m in sent if isinstance(m, LocalPositionNed)]
+    assert lp[-20:] == [500 * (k + 1) for k in range(20)]            # one per step, no wall-clock copies
+    assert lp.count(10_000) == 1
+    sent.clear()
+    idle_from = clock.t
+    while True:                                        # idle for 1 s: re-sent at 5 Hz
+        clock.t = max(clock.t, v.next_deadline())
+        if clock.t > idle_from + 1.0:
+            break
+        v.tick()
+    resent = [m.time_boot_ms for m in sent if isinstance(m, LocalPositionNed)]
+    assert 4 <= len(resent) <= 6 and set(resent) == {10_000}
+
+
+def test_lockstep_idle_traffic_resend_backs_off():
+    """An idle lockstep vehicle with a proximity sensor re-sends its current traffic set at
+    traffic_rate_hz at first, then ever more slowly (at most every 2 s)."""
+    from mavlink_bridge import NamedValueInt
+
+    v, clock, sent = make(lockstep=True, dt_s=0.5, traffic_rate_hz=5.0)
+    v.attach_world(lambda t, s: None)
+    v.on_world_answer(0, np.array([1]), np.array([[1.0, 2.0, 0.0, 0.0]]))
+    sent.clear()
+    start = clock.t
+    while clock.t < start + 30.0:
+        clock.t = max(clock.t + 1e-3, v.next_deadline())
+        v.tick()
+    markers = [m for m in sent if isinstance(m, NamedValueInt)]
+    assert 12 <= len(markers) <= 20                    # 5 Hz would be 150
+    assert all(m.time_boot_ms == 0 and m.value == 1 for m in markers)
+
+
+def test_realtime_next_deadline_includes_the_offboard_loss_failsafe():
+    v, clock, sent = make(com_of_loss_t_s=1.0, rates_hz={k: 0.0 for k in VehicleConfig().rates_hz}, physics_dt_s=5.0)
+    v.handle(cmd(400, 1))
+    stream(v, clock, 1.2)
+    v.handle(cmd(176, 1, 6))                            # OFFBOARD entry restarts the loss timer
+    assert v.mode == PX4_OFFBOARD
+    entered = clock.t
+    d = v.next_deadline()
+    assert entered + 1.0 < d <= entered + 1.0 + 1e-3    # COM_OF_LOSS_T after it, not a polling period later
+    clock.t = d
+    v.tick()
+    assert v.mode == PX4_HOLD
