@@ -334,15 +334,18 @@ class VehicleLink:
         while not self._closed.wait(max(0.0, min(next_t - time.monotonic(), 0.5))):
             now = time.monotonic()
             if now >= next_t:
-                self._send(
-                    Heartbeat(
-                        type=MavType.ONBOARD_CONTROLLER,
-                        autopilot=MavAutopilot.INVALID,
-                        base_mode=0,
-                        custom_mode=0,
-                        system_status=MavState.ACTIVE,
+                try:
+                    self._send(
+                        Heartbeat(
+                            type=MavType.ONBOARD_CONTROLLER,
+                            autopilot=MavAutopilot.INVALID,
+                            base_mode=0,
+                            custom_mode=0,
+                            system_status=MavState.ACTIVE,
+                        )
                     )
-                )
+                except LinkClosed:
+                    return  # closed between the wait and the send
                 next_t = now + self._hb_period_s
             if self._tlog is not None:
                 self._tlog.maybe_flush()

@@ -552,6 +552,25 @@ class SwarmExchange:
         payload = StateMsg(self.vehicle_id, int(step), float(time_s), _as_state(state)).encode()
         self._publisher.put(payload)
 
+    def finish_lockstep(self, step: int, time_s: float, own_state: Sequence[float], timeout_s: float) -> frozenset[int]:
+        """Lockstep HJB_d, after the mission's last gossip step ``step - 1``: publish the own
+        state for ``step`` and wait until every present vehicle has done the same (or left),
+        at most ``timeout_s``. A vehicle that closed its session right after its last step
+        would leave ``present()`` possibly before its last state reached a slower vehicle
+        (the liveliness undeclaration and the state travel independently), which would then
+        stop waiting for that state and count one neighbour less than the simulator. Counts
+        nothing. Returns the vehicles that did not finish in time."""
+        self.publish_state(step, time_s, own_state)
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                waiting = ((self._present & self.expected_ids) - {self.vehicle_id} - self._silent
+                           - set(self._by_step.get(step, {})))
+                left = deadline - time.monotonic()
+                if not waiting or left <= 0:
+                    return frozenset(waiting)
+                self._cond.wait(left)
+
     # ---- MFG: the t = 0 exchange -----------------------------------------------------
     def initial_exchange(self, state: Sequence[float], timeout_s: float,
                          time_s: float = 0.0, stop: threading.Event | None = None) -> dict[int, StateMsg]:

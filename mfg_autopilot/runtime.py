@@ -273,6 +273,10 @@ class Autopilot:
             t_ms = p.time_boot_ms
             k = t_ms // self.dt_ms                  # the step index is the vehicle's simulated time
             if k >= cfg.steps:
+                if self.gossips:                    # nobody leaves while another waits for its last state
+                    late = self.exchange.finish_lockstep(k, t_ms / 1000.0, _state_of(p), timeout_s=cfg.gossip_timeout_s)
+                    if late:
+                        self.clog.event("finish_wait_timeout", vehicles=sorted(late))
                 return "mission_time"
             state = _state_of(p)
             obs = self._observe(k, state, t_ms / 1000.0)

@@ -273,8 +273,9 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
     dt = preset_by_name("default").dt_s
     cfg = RunConfig(scenario=make_scenario("paper", n), mode=mode, preset_name="default", out=out_dir, seed=0, steps=steps,
                     range_m=10.0 if mode == "hjb" else None, lockstep=lockstep, progress=False)
-    first_step = {"t": None}
+    first_step = {"t": None, "cpu": {}}
     stop = threading.Event()
+    samp = _ChildSampler()
 
     def watch() -> None:               # when the first control step record appears (start-up over)
         log = out_dir / "controllers" / "controller0.jsonl"
@@ -282,6 +283,7 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
             try:
                 if '"type": "step"' in log.read_text() or '"type":"step"' in log.read_text():
                     first_step["t"] = time.perf_counter()
+                    first_step["cpu"] = dict(samp.cpu)       # CPU spent by then: start-up
             except OSError:
                 pass
             stop.wait(0.05)
@@ -289,7 +291,7 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
     w = threading.Thread(target=watch, daemon=True)
     load0 = _load()
     t0 = time.perf_counter()
-    with _ChildSampler() as samp:
+    with samp:
         w.start()
         _, metrics = run_swarm(cfg)
         t1 = time.perf_counter()
@@ -306,6 +308,11 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
     pair_rss = sum(roles.get(r, {}).get("peak_rss_mb_sum", 0.0) for r in ("mock", "controller"))
     rec.update(cpu_s_per_pair=pair_cpu / n, peak_rss_mb_per_pair=pair_rss / n,
                cpu_s_per_pair_per_sim_s=pair_cpu / n / sim_s)
+    if first_step["t"] is not None:    # flight only: CPU after the first control step (0.25 s sampling)
+        flight = sum(samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
+                     for pid, role in samp.role.items() if role in ("mock", "controller"))
+        rec.update(cpu_s_per_pair_flight=flight / n, cpu_ms_per_pair_step_flight=flight / n / steps * 1e3)
+    rec["load_after"] = _load()
     return rec
 
 
@@ -325,7 +332,7 @@ def bench_latency(out: Path, quick: bool = False) -> dict:
     n, steps = (1, 20) if quick else (4, 80)
     d = out / f"latency-n{n}"
     rec = _swarm_point(n, steps, False, d)
-    lat = []
+    lat, wake, compute = [], [], []
     for f in sorted((d / "controllers").glob("controller*.jsonl")):
         for line in f.read_text().splitlines():
             try:
@@ -334,8 +341,12 @@ def bench_latency(out: Path, quick: bool = False) -> dict:
                 continue
             if r.get("type") == "step" and r.get("latency_ms") is not None:
                 lat.append(float(r["latency_ms"]))
+                if r.get("latency_wake_ms") is not None:
+                    wake.append(float(r["latency_wake_ms"]))
+                    compute.append(float(r["latency_compute_ms"]))
     st = _stats_ms(np.asarray(lat) / 1e3) if lat else {"n": 0}
-    return {"n_vehicles": n, "steps": steps, "latency": st, "flight": rec}
+    split = {k: _stats_ms(np.asarray(v) / 1e3) for k, v in (("wake", wake), ("compute", compute)) if v}
+    return {"n_vehicles": n, "steps": steps, "latency": st, "latency_split": split, "flight": rec}
 
 
 def bench_pde_ratio(quick: bool = False) -> dict:
@@ -380,15 +391,18 @@ def format_table(res: dict) -> str:
                  + (f"; exponent {pm['exponent']:.2f}" if pm["exponent"] is not None else ""))
     if "swarm" in res:
         L.append("\nProcess swarm, lockstep, default preset MFG (sim s / wall s; per vehicle pair = mock + controller)")
-        L.append(f"{'N':>4s} {'steps':>6s} {'x real (flight)':>16s} {'x real (total)':>15s} {'CPU s/pair':>11s} {'CPU/pair/sim s':>15s} {'peak MB/pair':>13s}")
+        L.append(f"{'N':>4s} {'steps':>6s} {'x real (flight)':>16s} {'x real (total)':>15s} {'CPU s/pair':>11s} {'CPU/pair/sim s':>15s} "
+                 f"{'flight CPU ms/pair/step':>24s} {'peak MB/pair':>13s}")
         for r in res["swarm"]:
             L.append(f"{r['n']:4d} {r['steps']:6d} {r.get('realtime_factor_flight', float('nan')):16.2f} {r['realtime_factor_total']:15.2f} "
-                     f"{r['cpu_s_per_pair']:11.2f} {r['cpu_s_per_pair_per_sim_s']:15.3f} {r['peak_rss_mb_per_pair']:13.0f}"
-                     + (" PARTIAL" if r["partial"] else ""))
+                     f"{r['cpu_s_per_pair']:11.2f} {r['cpu_s_per_pair_per_sim_s']:15.3f} {r.get('cpu_ms_per_pair_step_flight', float('nan')):24.1f} "
+                     f"{r['peak_rss_mb_per_pair']:13.0f}" + (" PARTIAL" if r["partial"] else ""))
     if "latency" in res:
         la = res["latency"]["latency"]
         L.append(f"\nTelemetry-to-setpoint latency, real time, N = {res['latency']['n_vehicles']}: "
                  + (f"{la['n']} steps, p50 {la['p50_ms']:.3f} ms, p99 {la['p99_ms']:.3f} ms, max {la['max_ms']:.3f} ms" if la["n"] else "no steps"))
+        for part, st in res["latency"].get("latency_split", {}).items():
+            L.append(f"  of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
     if "pde" in res:
         L.append("\nLearned vs solved (bench/pde_bench.py, N = 9, coarsest grid): time per decision")
         for r in res["pde"]["timing"]:

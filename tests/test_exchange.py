@@ -185,6 +185,19 @@ def test_initial_exchange_and_wait_present_give_up_when_stopped(swarm_name):
         assert time.monotonic() - t0 < 5.0
 
 
+def test_finish_lockstep_waits_for_every_present_vehicle_and_counts_nothing(swarm_name):
+    a, b = make_swarm(swarm_name, 2)
+    with Opened([a, b]):
+        wait_until(lambda: a.present() == {0, 1} and b.present() == {0, 1}, 10, "both present")
+        t0 = time.monotonic()
+        assert a.finish_lockstep(7, 3.5, [0, 0, 0, 0], timeout_s=0.5) == {1}       # b has not finished
+        assert time.monotonic() - t0 >= 0.45
+        got = in_parallel([lambda: a.finish_lockstep(8, 4.0, [0, 0, 0, 0], timeout_s=10),
+                           lambda: b.finish_lockstep(8, 4.0, [1, 0, 0, 0], timeout_s=10)])
+        assert got == [frozenset(), frozenset()]
+        assert a.states_received_total == b.states_received_total == 0
+
+
 def test_present_and_lost(swarm_name):
     a, b, c = make_swarm(swarm_name, 3)
     lost = []
