@@ -83,6 +83,7 @@ class BackstopParams:
     trigger_m: float = 0.15         # act only if the predicted closest approach is below this (< dense plan clearance)
     target_m: float = 0.15          # ... and then push for this clearance
     share: float = 0.5              # own share of the correction (the other vehicle is assumed to take the rest)
+    planned_max_own_dev_m: float = 0.1     # MFG: the response above only while the own UAV is this close to its plan particle (tracking error ~4 cm rms)
     # MFG only: a sensed vehicle farther than this from every plan particle is not flying the
     # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
     plan_mismatch_m: float = 0.5
