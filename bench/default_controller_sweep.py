@@ -1,9 +1,10 @@
 """Measurements behind docs/default_controller.md (issue 7): the must-show table, the
 ablation table (each piece of the default controller on / off) and the fault runs.
 
-    .venv/bin/python bench/default_controller_sweep.py must      --seeds 0,1,2 --workers 2
-    .venv/bin/python bench/default_controller_sweep.py ablation  --seeds 0,1,2 --workers 2
-    .venv/bin/python bench/default_controller_sweep.py faults    --seeds 0,1,2 --workers 2
+    .venv/bin/python bench/default_controller_sweep.py must      --seeds 0,1,2 --workers 1
+    .venv/bin/python bench/default_controller_sweep.py ablation  --seeds 0,1,2 --workers 1
+    .venv/bin/python bench/default_controller_sweep.py faults    --seeds 0,1,2 --workers 1
+    .venv/bin/python bench/default_controller_sweep.py faults    --seeds 3,4 --workers 1 --variants "MFG default;MFG default, no backstop"
 
 Each prints a markdown table (and writes the raw rows as JSON with --json PATH). Every run
 is `mfg-swarm sim` in process (mfg_swarm.sim.simulate) with the default 200 steps.
