@@ -1,9 +1,10 @@
 """Measurements behind docs/default_controller.md (issue 7): the must-show table, the
 ablation table (each piece of the default controller on / off) and the fault runs.
 
-    .venv/bin/python bench/default_controller_sweep.py must      --seeds 0,1,2 --workers 2
-    .venv/bin/python bench/default_controller_sweep.py ablation  --seeds 0,1,2 --workers 2
-    .venv/bin/python bench/default_controller_sweep.py faults    --seeds 0,1,2 --workers 2
+    .venv/bin/python bench/default_controller_sweep.py must      --seeds 0,1,2 --workers 1
+    .venv/bin/python bench/default_controller_sweep.py ablation  --seeds 0,1,2 --workers 1
+    .venv/bin/python bench/default_controller_sweep.py faults    --seeds 0,1,2 --workers 1
+    .venv/bin/python bench/default_controller_sweep.py faults    --seeds 3,4 --workers 1 --variants "MFG default;MFG default, no backstop"
 
 Each prints a markdown table (and writes the raw rows as JSON with --json PATH). Every run
 is `mfg-swarm sim` in process (mfg_swarm.sim.simulate) with the default 200 steps.
@@ -112,8 +113,12 @@ def ablation(seeds, workers):
 
 FAULTS = [
     ("paper", 25, dict(fail_vehicle=0, fail_at_s=5.0)),
+    ("paper", 25, dict(fail_vehicle=12, fail_at_s=20.0)),
     ("crossing", 50, dict(fail_vehicle=22, fail_at_s=10.0)),
+    ("crossing", 50, dict(fail_vehicle=37, fail_at_s=12.0)),
     ("crossing", 50, dict(fail_vehicle=27, fail_at_s=15.0)),
+    ("crossing", 50, dict(fail_vehicle=12, fail_at_s=16.0)),
+    ("dense", 81, dict(fail_vehicle=10, fail_at_s=15.0)),
     ("dense", 81, dict(fail_vehicle=40, fail_at_s=20.0)),
     ("paper", 25, dict(gust=True)),
     ("crossing", 50, dict(gust=True)),
@@ -121,19 +126,25 @@ FAULTS = [
 ]
 
 
-def faults(seeds, workers):
+FAULT_VARIANTS = ("MFG default", "MFG default, no backstop", "HJB_100 default")
+
+
+def faults(seeds, workers, variants=FAULT_VARIANTS):
     jobs = []
     for s, n, f in FAULTS:
         for sd in seeds:
-            jobs.append(dict(scenario=s, n=n, mode="mfg", seed=sd, variant="MFG default", **f))
-            jobs.append(dict(scenario=s, n=n, mode="mfg", seed=sd, variant="MFG default, no backstop",
-                             changes={"backstop.enabled": False}, **f))
-            jobs.append(dict(scenario=s, n=n, mode="hjb", seed=sd, range_m=100.0, variant="HJB_100 default", **f))
+            if "MFG default" in variants:
+                jobs.append(dict(scenario=s, n=n, mode="mfg", seed=sd, variant="MFG default", **f))
+            if "MFG default, no backstop" in variants:
+                jobs.append(dict(scenario=s, n=n, mode="mfg", seed=sd, variant="MFG default, no backstop",
+                                 changes={"backstop.enabled": False}, **f))
+            if "HJB_100 default" in variants:
+                jobs.append(dict(scenario=s, n=n, mode="hjb", seed=sd, range_m=100.0, variant="HJB_100 default", **f))
     rows = _pool(jobs, workers)
     print("| scenario | N | fault | variant | collided pairs (sum) | with failed vehicle | min dist (m) | others in slot (mean) | backstop activations |")
     print("|---|---|---|---|---|---|---|---|---|")
     for s, n, f in FAULTS:
-        for v in ("MFG default", "MFG default, no backstop", "HJB_100 default"):
+        for v in variants:
             rs = [r for r in rows if r["scenario"] == s and r["n"] == n and r["variant"] == v
                   and all(r.get(k) == val for k, val in f.items())]
             fault = "gust" if f.get("gust") else f"vehicle {f['fail_vehicle']} holds at {f['fail_at_s']} s"
@@ -150,9 +161,17 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--variants", default=";".join(FAULT_VARIANTS),
+                    help="faults only: ';'-separated subset of: " + "; ".join(FAULT_VARIANTS))
     a = ap.parse_args(argv)
     seeds = tuple(int(s) for s in a.seeds.split(","))
-    rows = {"must": must, "ablation": ablation, "faults": faults}[a.what](seeds, a.workers)
+    if a.what == "faults":
+        variants = tuple(v.strip() for v in a.variants.split(";"))
+        if not set(variants) <= set(FAULT_VARIANTS):
+            ap.error(f"--variants: unknown {sorted(set(variants) - set(FAULT_VARIANTS))}")
+        rows = faults(seeds, a.workers, variants)
+    else:
+        rows = {"must": must, "ablation": ablation}[a.what](seeds, a.workers)
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(rows, fh, indent=1, default=float)

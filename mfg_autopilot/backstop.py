@@ -19,6 +19,12 @@ command (:func:`apply_backstop`: the nearest command to the nominal one whose co
 along delta_a is at least |delta_a|). With nothing predicted below the trigger the command
 is returned unchanged (inactive otherwise).
 
+Against vehicles that do not fly the plan (MFG's 'unplanned': a failed or blown UAV) the
+default MFG controller uses :func:`escape_acc` instead: a sampled safety filter that picks
+the command nearest to the nominal one which keeps clear of the threat *and* of every other
+sensed vehicle over the horizon (a single half-plane push away from one vehicle could push a
+UAV into another's path: where two formations cross, at 8 m/s closing speed).
+
 Shapes: own (n, 4); sensed states (m, 4) owned by bank rows owner (m,).
 """
 
@@ -29,7 +35,7 @@ import numpy as np
 from .default_params import BackstopParams
 from .planner import cap_norm
 
-__all__ = ["backstop_acc", "apply_backstop"]
+__all__ = ["backstop_acc", "apply_backstop", "escape_acc"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams) -> np.ndarray:
@@ -73,3 +79,100 @@ def apply_backstop(a_nom: np.ndarray, delta_a: np.ndarray, a_max_m_s2: float) ->
     tang = cap_norm(tang, np.sqrt(np.maximum(a_max_m_s2 ** 2 - a_n ** 2, 0.0)))
     a = np.where(active[:, None], a_n[:, None] * n_hat + tang, a_nom)
     return cap_norm(a, a_max_m_s2), active
+
+
+def _directions(k: int) -> np.ndarray:
+    ang = 2.0 * np.pi * np.arange(k) / k
+    return np.stack([np.cos(ang), np.sin(ang)], axis=1)
+
+
+def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
+               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams) -> tuple[np.ndarray, np.ndarray]:
+    """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
+
+    Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
+    unplanned ones (a failed or blown vehicle), which alone can trigger it, with trigger_m[e].
+    Prediction over the horizon (sampled every escape_sample_s): the own vehicle under a
+    constant candidate acceleration a_c, p(t) = r + v t + a_c t^2 / 2; every sensed vehicle at
+    constant velocity, and a threat also as braking to a stop at a_max (a vehicle that has
+    failed into Hold brakes; the sensor gives no acceleration, so both hypotheses are kept).
+    A row is active if its nominal command a_nom brings a threat closer than its trigger.
+    Then, among the candidates (a_nom, 0, and escape_directions directions at 1/2 and 1 x
+    a_max), it takes the one minimising
+
+        sum_e w_e max(0, 1 - dmin_e(a_c) / clear_e)^2 + escape_effort |a_c - a_nom|^2 / a_max^2,
+
+    w_e = 1 (threat) or escape_planned_weight: the escape keeps clear of every sensed vehicle,
+    not only of the threat - a push away from one vehicle into the path of another (the old
+    single-constraint response's failure where two formations cross) costs as much as the
+    threat itself. Rows that are not active keep a_nom. Returns (command (n, 2), active (n,)).
+    """
+    n = own.shape[0]
+    active = np.zeros(n, dtype=bool)
+    a_out = np.array(a_nom, dtype=float, copy=True)
+    if sensed_states.shape[0] == 0 or not np.any(threat):
+        return a_out, active
+    a_max = bp.a_max_m_s2
+    t = np.arange(1, int(round(bp.horizon_s / bp.escape_sample_s)) + 1) * bp.escape_sample_s        # (T,)
+    # other vehicles' predicted positions relative to the own *coasting* vehicle (a = 0): q(t) - r - v t, (m, T, 2)
+    d = sensed_states[:, 0:2] - own[owner, 0:2]
+    u = sensed_states[:, 2:4] - own[owner, 2:4]
+    rel = d[:, None, :] + t[None, :, None] * u[:, None, :]
+    # a threat's braking hypothesis: its own velocity w decays at a_max to 0, displacement removed from rel
+    w = sensed_states[:, 2:4]
+    wn = np.linalg.norm(w, axis=1)
+    t_stop = wn / a_max
+    tb = np.minimum(t[None, :], t_stop[:, None])                                                  # (m, T)
+    back = (0.5 * a_max * tb ** 2)[:, :, None] * (w / np.maximum(wn, 1e-12)[:, None])[:, None, :]
+    rel_b = rel - back
+    # which rows does the nominal command put in conflict with a threat
+    half_t2 = 0.5 * t ** 2
+    own_nom = half_t2[None, :, None] * a_nom[owner][:, None, :]                                    # (m, T, 2)
+    dmin_nom = np.minimum(np.linalg.norm(rel - own_nom, axis=2).min(axis=1), np.linalg.norm(rel_b - own_nom, axis=2).min(axis=1))
+    hit = threat & (dmin_nom < trigger_m)
+    active[np.unique(owner[hit])] = True
+    if not np.any(active):
+        return a_out, active
+    rows = np.flatnonzero(active)
+    sel = active[owner]
+    e_own = owner[sel]
+    rel, rel_b = rel[sel], rel_b[sel]
+    thr, clear = threat[sel], clear_m[sel]
+    wgt = np.where(thr, bp.escape_threat_weight, bp.escape_planned_weight)
+    # 'keep right' (as the plan's repulsion): against each vehicle the nominal command conflicts with, a
+    # sideways escape to the left of the approach costs extra, so two escaping vehicles pick opposite sides
+    u_s = u[sel]
+    un_s = np.linalg.norm(u_s, axis=1)
+    left = np.stack([u_s[:, 1], -u_s[:, 0]], axis=1) / np.maximum(un_s, 1e-12)[:, None]        # -u rotated +90 deg
+    conflict = (dmin_nom[sel] < clear) & (un_s > bp.u_noise_m_s)
+    dirs = _directions(bp.escape_directions)
+    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])            # (C-1, 2)
+    # lateral departures from the own track cost escape_lateral_cost x more than along-track ones (braking keeps
+    # a UAV in its own lane, which the plan has deconflicted from the other groups' lanes)
+    vo = own[rows, 2:4]
+    vn = np.linalg.norm(vo, axis=1)
+    v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
+    best = np.full(rows.size, np.inf)
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[rows] = np.arange(rows.size)
+    for c in range(cand_fixed.shape[0] + 1):
+        a_c = a_nom[rows] if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
+        disp = half_t2[None, :, None] * a_c[pos[e_own]][:, None, :]                                 # (m', T, 2)
+        dist = np.linalg.norm(rel - disp, axis=2)                                                  # (m', T)
+        dist = np.where(thr[:, None], np.minimum(dist, np.linalg.norm(rel_b - disp, axis=2)), dist)
+        k_min = np.argmin(dist, axis=1)
+        dmin = dist[np.arange(dist.shape[0]), k_min]
+        # urgency: a conflict predicted at t counts tau_min / max(t, tau_min) (one that comes later can still be
+        # solved at a later step; an imminent one cannot)
+        urg = bp.tau_min_s / np.maximum(t[k_min], bp.tau_min_s) if bp.escape_urgency else 1.0
+        pen = wgt * urg * np.maximum(0.0, clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0) ** 2
+        pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
+                             (half_t2[-1] * a_max), 0.0)
+        da_c = a_c - a_nom[rows]
+        along = np.einsum("rd,rd->r", da_c, v_hat)
+        effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
+        cost = np.bincount(pos[e_own], pen, rows.size) + bp.escape_effort * effort
+        better = cost < best
+        best = np.where(better, cost, best)
+        a_out[rows[better]] = a_c[better]
+    return cap_norm(a_out, a_max), active
