@@ -143,6 +143,12 @@ def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts
     return HeardSummary(np.asarray(counts, dtype=np.int64), pos_sum, nearest)
 
 
+def _sorted_unique(k: np.ndarray) -> np.ndarray:
+    """= np.unique(k) for integer keys, by one sort (numpy 2's hash-based unique is ~5x slower on 10^6 keys)."""
+    k = np.sort(k)
+    return k[np.concatenate([[True], k[1:] != k[:-1]])] if k.size else k
+
+
 def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float) -> np.ndarray | None:
     """Undirected pairs (p, 2), i < j, sorted, with |r_j - r_i| <= base + extra_i + extra_j for a
     controller-declared reach = (base_m, extra_m (N,)) (or a scalar: extra = 0); None if that can
@@ -166,7 +172,7 @@ def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float) -> n
         ne = i != j
         i, j = i[ne], j[ne]
         keys.append(np.minimum(i, j) * n + np.maximum(i, j))
-    k = np.unique(np.concatenate(keys)) if len(keys) > 1 else np.sort(keys[0])
+    k = _sorted_unique(np.concatenate(keys)) if len(keys) > 1 else np.sort(keys[0])
     pairs = np.stack([k // n, k % n], axis=1)
     d = np.linalg.norm(pts[pairs[:, 1]] - pts[pairs[:, 0]], axis=1)
     return pairs[d <= base + extra[pairs[:, 0]] + extra[pairs[:, 1]]]
@@ -195,7 +201,7 @@ def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.nda
         if pairs is not None:
             if sensed_pairs_ is not None and sensed_pairs_.size:
                 sp = np.sort(np.asarray(sensed_pairs_, dtype=np.int64), axis=1)
-                k = np.unique(np.concatenate([pairs[:, 0] * n + pairs[:, 1], sp[:, 0] * n + sp[:, 1]]))
+                k = _sorted_unique(np.concatenate([pairs[:, 0] * n + pairs[:, 1], sp[:, 0] * n + sp[:, 1]]))
                 pairs = np.stack([k // n, k % n], axis=1)
             heard = Neighbours.from_pairs(obs, pairs)
             summary = (heard_summary_by_tree(tree, pts, range_m, counts)
