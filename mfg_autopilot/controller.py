@@ -56,7 +56,7 @@ class HeardSummary:
     """Aggregates over *every* state each bank row heard this step: count (n,), sum of the
     heard positions pos_sum_m (n, 2), distance to the nearest heard vehicle nearest_m (n,)
     (inf if none). Given by a caller that delivers only the heard states within the
-    controller's ``heard_cutoff_m`` (the simulator at large N); :meth:`of` computes it from a
+    controller's ``heard_cutoff_m`` reach (the simulator at large N); :meth:`of` computes it from a
     complete list (what a vehicle process holds)."""
 
     count: np.ndarray
@@ -82,7 +82,7 @@ class Observation:
     neighbours: Neighbours | None = None         # heard this step (HJB_d)
     sensed: Neighbours | None = None             # onboard proximity sensor (no communication)
     heard_summary: HeardSummary | None = None    # aggregates of everything heard, when ``neighbours`` holds only
-                                                 # the states within the controller's heard_cutoff_m (simulator)
+                                                 # the states within the controller's heard_cutoff_m reach (simulator)
 
 
 class Controller(Protocol):
@@ -105,17 +105,17 @@ class Controller(Protocol):
 
     def step(self, obs: Observation) -> StepInfo: ...
 
-    # Optional (HJB_d controllers; the simulator uses it when present):
-    # def heard_cutoff_m(self, step: int, states: np.ndarray) -> float | None:
-    #     """For a bank holding every vehicle, whose observed states (N, 4) are ``states``: a
-    #     distance beyond which a heard state cannot change any row's action at this step
-    #     (None: every heard state matters). The caller may then put in Observation.neighbours
-    #     only the heard states within it, provided it gives Observation.heard_summary over
-    #     all of them when the controller's ``needs_heard_summary`` is true; the action is the same as with the complete list (up to the
-    #     summation order of the terms that remain)."""
-    # def sensed_cutoff_m(self, states: np.ndarray) -> float | None:
-    #     """Likewise for the proximity sensor: sensed vehicles farther than this cannot change
-    #     any row's action; the caller may deliver only those within it in Observation.sensed."""
+    # Optional (the default preset's controllers; the simulator uses them when present). A *reach* is
+    # (base_m, extra_m (N,)) for a bank holding every vehicle, whose observed states (N, 4) are given:
+    # vehicle j can change row i's action only if |r_j - r_i| <= base + extra_i + extra_j.
+    # def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+    #     """The reach of heard states (None: every heard state matters). The caller may then put in
+    #     Observation.neighbours only the heard states within it (plus those it also sensed),
+    #     provided it gives Observation.heard_summary over all of them when the controller's
+    #     ``needs_heard_summary`` is true; the action is the same as with the complete list (up
+    #     to the summation order of the terms that remain)."""
+    # def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+    #     """Likewise for the proximity sensor (Observation.sensed)."""
 
     def weights(self) -> dict[str, np.ndarray]:
         """Learned weights for logging (e.g. {"w_H": (n, 54), "w_F": (n, 69)})."""

@@ -77,20 +77,20 @@ class _DefaultBase:
     _SENSED_POS_MARGIN_M = 0.05
     _SENSED_VEL_MARGIN_M_S = 0.02
 
-    def sensed_cutoff_m(self, states: np.ndarray) -> float | None:
-        """For a bank holding every vehicle (observed states (N, 4)): sensed vehicles farther than this
-        cannot change any row's action, so a simulator may deliver only those within it (None: all
-        within the sensor range). The backstop acts only on a predicted closest approach rho below its
-        trigger (at most max(trigger_m, unplanned_trigger_m)), and rho >= |d| - horizon |u| with
-        |u| <= 2 max_k |v_k - c| (c the centre of the velocity box), plus the sensor's quantisation."""
+    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """For a bank holding every vehicle (observed states (N, 4)): the reach (base_m, extra_m (N,)):
+        a vehicle j sensed by row i can change i's action only if |r_j - r_i| <= base + extra_i + extra_j,
+        so a simulator may deliver only those (None: all within the sensor range). The backstop acts only
+        on a predicted closest approach rho below its trigger (at most max(trigger_m, unplanned_trigger_m)),
+        and rho >= |d| - horizon |u| with |u| <= |v_i - c| + |v_j - c| (c: the median velocity), plus the
+        sensor's quantisation margins."""
         bp = self.preset.backstop
         if not bp.enabled or states.shape[0] == 0:
             return None
         v = states[:, 2:4]
-        c = 0.5 * (v.min(axis=0) + v.max(axis=0))
-        spread = float(np.max(np.linalg.norm(v - c[None, :], axis=1)))
-        trig = max(bp.trigger_m, bp.unplanned_trigger_m)
-        return trig + 2.0 * bp.horizon_s * (spread + self._SENSED_VEL_MARGIN_M_S) + self._SENSED_POS_MARGIN_M
+        c = np.median(v, axis=0)
+        base = max(bp.trigger_m, bp.unplanned_trigger_m) + self._SENSED_POS_MARGIN_M + 2.0 * bp.horizon_s * self._SENSED_VEL_MARGIN_M_S
+        return base, bp.horizon_s * np.linalg.norm(v - c[None, :], axis=1)
 
     @staticmethod
     def _not_heard(sensed: Neighbours, heard: Neighbours | None) -> Neighbours:
@@ -337,21 +337,18 @@ class DefaultHJBController(_DefaultBase):
         """The first step derives slots and radii from everything heard (controller.HeardSummary)."""
         return not self._slots_known
 
-    def heard_cutoff_m(self, step: int, states: np.ndarray) -> float:
-        """Heard states farther than this cannot change any row's action (controller.Controller):
-        the repulsion is exactly zero for |d| > R + horizon |u| (planner.repulsion_acc), |u| <= 2 max|v - c|;
-        the backstop's exclusion of heard vehicles needs the heard ones within the sensor range."""
+    def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray]:
+        """The reach (base_m, extra_m (N,)) of heard states (controller.Controller): a heard j can change
+        row i's action only if |r_j - r_i| <= base + extra_i + extra_j: the repulsion is exactly zero for
+        |d| > R + horizon |u| (planner.repulsion_acc) and |u| <= |v_i - c| + |v_j - c| (c: the median
+        velocity). The backstop's exclusion of heard vehicles needs the sensed ones too: the caller adds them."""
         p, rp = self.preset, self.preset.hjb_repulsion
-        cut = 0.0
-        if p.use_repulsion and states.shape[0]:
-            v = states[:, 2:4]
-            c = 0.5 * (v.min(axis=0) + v.max(axis=0))          # |v_j - v_i| <= 2 max_k |v_k - c| for any c
-            spread = float(np.max(np.linalg.norm(v - c[None, :], axis=1)))
-            rad = float(np.max(self._radius)) if self._slots_known else rp.radius_m
-            cut = rad + 2.0 * rp.horizon_s * spread + 1e-6
-        if self.sensor_range_m is not None:
-            cut = max(cut, float(self.sensor_range_m))
-        return cut
+        if not p.use_repulsion or states.shape[0] == 0:
+            return 0.0, np.zeros(states.shape[0])
+        v = states[:, 2:4]
+        c = np.median(v, axis=0)
+        rad = float(np.max(self._radius)) if self._slots_known else rp.radius_m
+        return rad + 1e-6, rp.horizon_s * np.linalg.norm(v - c[None, :], axis=1)
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """Not used: HJB_d hears its neighbours at every step instead."""

@@ -143,24 +143,67 @@ def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts
     return HeardSummary(np.asarray(counts, dtype=np.int64), pos_sum, nearest)
 
 
-def hear(obs: np.ndarray, range_m: float, ctrl, step: int) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
+def _sorted_unique(k: np.ndarray) -> np.ndarray:
+    """= np.unique(k) for integer keys, by one sort (numpy 2's hash-based unique is ~5x slower on 10^6 keys)."""
+    k = np.sort(k)
+    return k[np.concatenate([[True], k[1:] != k[:-1]])] if k.size else k
+
+
+def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float) -> np.ndarray | None:
+    """Undirected pairs (p, 2), i < j, sorted, with |r_j - r_i| <= base + extra_i + extra_j for a
+    controller-declared reach = (base_m, extra_m (N,)) (or a scalar: extra = 0); None if that can
+    reach cap_m (the caller then lists everything within cap_m). Exact: all pairs within
+    base + 2 q (q the 90th percentile of extra), plus, for the few vehicles with extra > q, all
+    pairs within base + extra + max(extra) by a second tree query; then the exact per-pair test."""
+    base, extra = (reach, None) if np.isscalar(reach) else reach
+    n = pts.shape[0]
+    extra = np.zeros(n) if extra is None else np.asarray(extra, dtype=float)
+    emax = float(extra.max()) if n else 0.0
+    if not base + 2.0 * emax < cap_m:
+        return None
+    q = float(np.quantile(extra, 0.9)) if n else 0.0
+    keys = [None]
+    p0 = tree.query_pairs(base + 2.0 * q + 1e-9, output_type="ndarray").astype(np.int64)
+    keys[0] = p0[:, 0] * n + p0[:, 1]
+    fast = np.flatnonzero(extra > q)
+    if fast.size:
+        m = cKDTree(pts[fast]).sparse_distance_matrix(tree, base + 2.0 * emax + 1e-9, output_type="ndarray")
+        i, j = fast[m["i"]].astype(np.int64), m["j"].astype(np.int64)
+        ne = i != j
+        i, j = i[ne], j[ne]
+        keys.append(np.minimum(i, j) * n + np.maximum(i, j))
+    k = _sorted_unique(np.concatenate(keys)) if len(keys) > 1 else np.sort(keys[0])
+    pairs = np.stack([k // n, k % n], axis=1)
+    d = np.linalg.norm(pts[pairs[:, 1]] - pts[pairs[:, 0]], axis=1)
+    return pairs[d <= base + extra[pairs[:, 0]] + extra[pairs[:, 1]]]
+
+
+def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.ndarray | None = None,
+         sensor_range_m: float | None = None) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
     """HJB_d's exchange at one step: every UAV hears the UAVs within range_m (k-d tree).
 
     Returns (heard, summary, counts): counts (N,) is the exact number of states each UAV
-    received (the communication metric). If the controller declares a ``heard_cutoff_m``
-    (controller.Controller) below range_m, only the heard states within the cutoff are listed
-    (O(N log N + pairs within the cutoff) instead of O(pairs within d): at the destination every
-    UAV hears everyone), with a HeardSummary over all of them when the controller needs it."""
+    received (the communication metric). If the controller declares a ``heard_cutoff_m`` reach
+    (controller.Controller) that stays below range_m, and the sensor range is below range_m,
+    only the heard states within the reach and the sensed ones (``sensed_pairs_``: the backstop
+    leaves heard vehicles to communication) are listed - O(N log N + those pairs) instead of
+    O(pairs within d): at the destination every UAV hears everyone - with a HeardSummary over
+    all heard states when the controller needs it."""
     n = obs.shape[0]
     if n < 2:
         return Neighbours.from_pairs(obs, np.zeros((0, 2), np.int64)), None, np.zeros(n, dtype=np.int64)
     pts = obs[:, 0:2]
     tree = cKDTree(pts)
-    cut = ctrl.heard_cutoff_m(step, obs) if hasattr(ctrl, "heard_cutoff_m") else None
-    if cut is not None and cut < range_m:
+    reach = ctrl.heard_cutoff_m(step, obs) if hasattr(ctrl, "heard_cutoff_m") else None
+    if reach is not None and (sensor_range_m is None or sensor_range_m < range_m):
         counts = tree.query_ball_point(pts, range_m, return_length=True, workers=-1).astype(np.int64) - 1   # self is within range
-        if int(counts.sum()) > FULL_HEARD_MAX_STATES:
-            heard = Neighbours.from_pairs(obs, tree.query_pairs(cut, output_type="ndarray"))
+        pairs = pairs_within_reach(tree, pts, reach, range_m) if int(counts.sum()) > FULL_HEARD_MAX_STATES else None
+        if pairs is not None:
+            if sensed_pairs_ is not None and sensed_pairs_.size:
+                sp = np.sort(np.asarray(sensed_pairs_, dtype=np.int64), axis=1)
+                k = _sorted_unique(np.concatenate([pairs[:, 0] * n + pairs[:, 1], sp[:, 0] * n + sp[:, 1]]))
+                pairs = np.stack([k // n, k % n], axis=1)
+            heard = Neighbours.from_pairs(obs, pairs)
             summary = (heard_summary_by_tree(tree, pts, range_m, counts)
                        if getattr(ctrl, "needs_heard_summary", True) else None)
             return heard, summary, counts
@@ -217,15 +260,19 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         w_ref[k] = ctrl.weights()["w_H"][0]
         heard = sensed = None
         heard_summary = None
-        if cfg.gossips:
-            heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k)
-            comm[k] += counts
+        sp = None
         if sensor_range_m is not None and n > 1:
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
-            # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md)
-            # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m, if any)
+            # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md);
+            # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m reach, if any)
             reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
-            owner, other = sensed_rows(sensed_pairs(obs, sensor_range_m if reach is None else min(sensor_range_m, reach)))
+            sp = None if reach is None else pairs_within_reach(cKDTree(obs[:, 0:2]), obs[:, 0:2], reach, sensor_range_m)
+            sp = sensed_pairs(obs, sensor_range_m) if sp is None else sp
+        if cfg.gossips:
+            heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k, sp, sensor_range_m)
+            comm[k] += counts
+        if sp is not None:
+            owner, other = sensed_rows(sp)
             seen = np.flatnonzero(np.bincount(other, minlength=n))     # = np.unique(other), without a sort
             q = np.zeros_like(obs)
             q[seen] = quantise_sensed_states(obs[seen])

@@ -85,17 +85,33 @@ def test_hjb_delivering_only_heard_states_within_the_cutoff_flies_the_same(monke
     assert m_cut["collision_pairs"] == m_full["collision_pairs"]
 
 
-def test_heard_cutoff_bounds_the_repulsion_reach():
+def test_heard_reach_bounds_the_repulsion_reach():
     # given a default HJB_d bank and states with one fast vehicle
     sc = make_scenario("paper", 9)
     ctrl = make_controller("hjb", DEFAULT, sc.destination_m)
     obs = np.concatenate([sc.initial_pos_m, np.zeros((9, 2))], axis=1)
     obs[4, 2:4] = [3.0, 4.0]
-    cut = ctrl.heard_cutoff_m(0, obs)
+    base, extra = ctrl.heard_cutoff_m(0, obs)
     rp = DEFAULT.hjb_repulsion
-    # then it covers the repulsion radius plus the horizon at twice the largest speed, and the sensor range
-    assert cut >= rp.radius_m + 2.0 * rp.horizon_s * 2.5      # |v_j - v_i| <= 2 * half the velocity box diagonal (5 m/s)
-    assert cut >= DEFAULT.backstop.sensor_range_m
+    # then every pair's reach covers the repulsion radius plus the horizon at their relative speed
+    rel = np.linalg.norm(obs[:, None, 2:4] - obs[None, :, 2:4], axis=2)
+    assert np.all(base + extra[:, None] + extra[None, :] >= rp.radius_m + rp.horizon_s * rel)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pairs_within_reach_are_exactly_the_brute_force_ones(seed):
+    # given scattered vehicles, a few of them with a large reach
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0.0, 80.0, (900, 2))
+    extra = np.abs(rng.standard_normal(900)) * 0.5
+    extra[rng.integers(0, 900, 12)] = 6.0
+    base = 1.0
+    got = sim.pairs_within_reach(cKDTree(pts), pts, (base, extra), 100.0)
+    # then they are the pairs i < j with |r_j - r_i| <= base + extra_i + extra_j, sorted
+    d = np.linalg.norm(pts[:, None] - pts[None, :], axis=2)
+    i, j = np.nonzero(np.triu(d <= base + extra[:, None] + extra[None, :], k=1))
+    np.testing.assert_array_equal(got, np.stack([i, j], axis=1))
+    assert sim.pairs_within_reach(cKDTree(pts), pts, (base, extra), 12.0) is None       # reaches the cap
 
 
 @pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
