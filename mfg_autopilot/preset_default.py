@@ -181,6 +181,23 @@ class DefaultMFGController(_DefaultBase):
     def _spacing_m(self) -> float:
         return self.plan.spacing_m
 
+    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """As the base class while every vehicle flies the plan; None (everything within the sensor
+        range) as soon as any vehicle might be 'unplanned': the escape manoeuvre (backstop.escape_acc)
+        then looks at every sensed vehicle over candidate accelerations up to a_max, far beyond the
+        trigger reach. Whether a vehicle is unplanned depends only on its own state and the plan
+        (the common-mode re-check and the own-deviation gate only remove responses), so it is
+        decided here on the true states with a margin for the sensor's quantisation."""
+        bp = self.preset.backstop
+        if not bp.enabled or self.plan is None or states.shape[0] == 0:
+            return None
+        margin = self._SENSED_POS_MARGIN_M + bp.plan_mismatch_s * self._SENSED_VEL_MARGIN_M_S
+        w = np.array([1.0, 1.0, bp.plan_mismatch_s, bp.plan_mismatch_s])
+        d, _ = cKDTree(self.plan.states * w).query(np.asarray(states, dtype=float) * w, k=1)
+        if np.any(d > bp.plan_mismatch_m - margin):
+            return None
+        return super().sensed_cutoff_m(states)
+
     def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """Sensed vehicles farther than plan_mismatch_m from every plan particle, in the state
         metric |dr|^2 + (plan_mismatch_s |dv|)^2 (the plan -

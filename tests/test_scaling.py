@@ -115,6 +115,7 @@ def test_pairs_within_reach_are_exactly_the_brute_force_ones(seed):
 
 
 @pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
+                                                   ("mfg", "crossing", 50, {"fail_vehicle": 27, "fail_at_s": 15.0}),
                                                    ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
 def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
     # given runs in which the backstop acts (dense formation, a failed vehicle)
@@ -124,6 +125,7 @@ def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch
     # when the simulator delivers what the sensor sees within its range, and only within sensed_cutoff_m
     t_cut, m_cut = simulate(cfg, progress=False)
     monkeypatch.setattr(pd._DefaultBase, "sensed_cutoff_m", lambda self, states: None)
+    monkeypatch.setattr(pd.DefaultMFGController, "sensed_cutoff_m", lambda self, states: None)
     t_all, m_all = simulate(cfg, progress=False)
     # then the flights are the same bit for bit
     assert m_all["backstop_activations"] > 0
@@ -145,3 +147,20 @@ def test_phi_G_feature_loop_sums_like_the_einsum_it_replaced():
         w += sigT[m][pos] * wT[m][rows]
     # then it is bit-identical to the former einsum over the gathered Fortran-order block
     np.testing.assert_array_equal(w, np.einsum("pm,pm->p", np.asfortranarray(sig[pos]), wF[rows]))
+
+
+def test_mfg_sensed_cutoff_covers_the_escape_once_a_vehicle_leaves_the_plan():
+    # given a default MFG bank after the t = 0 exchange, everyone on the plan
+    import mfg_autopilot.preset_default as pd
+    sc = make_scenario("paper", 9)
+    s0 = np.concatenate([sc.initial_pos_m, np.tile(DEFAULT.cost.v_o, (9, 1))], axis=1)
+    ctrl = pd.DefaultMFGController(DEFAULT, sc.destination_m)
+    ctrl.exchange_t0(s0, np.arange(9), np.arange(9), sc.destination_m)
+    # then the simulator may cut the sensed set to the trigger reach
+    reach = ctrl.sensed_cutoff_m(ctrl.plan.states.copy())
+    assert reach is not None and reach[0] < DEFAULT.backstop.sensor_range_m
+    # when one vehicle hovers while the plan moves on (a failed vehicle: the escape may act and then weighs
+    # every sensed vehicle under candidate accelerations up to a_max), the whole sensor range is needed
+    off = ctrl.plan.states.copy()
+    off[4, 2:4] = 0.0
+    assert ctrl.sensed_cutoff_m(off) is None
