@@ -54,6 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicle-lost-s", type=float, default=3.0,
                    help="heartbeat silence after which the vehicle counts as lost (stop, wait, redo the handshake)")
     p.add_argument("--step-timeout-s", type=float, default=30.0, help="lockstep: wait for the vehicle to take a step")
+    p.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                   help="run the controller's threads at SCHED_FIFO priority P (1-99; needs CAP_SYS_NICE), as a flight "
+                        "computer would; refused -> a log line and normal scheduling")
     p.add_argument("--log-level", default="INFO")
     ZenohSettings.add_cli_args(p)
     return p
@@ -70,6 +73,8 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
             raise ValueError(f"mission file {args.mission!r} not found") from None
         except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
             raise ValueError(f"mission file {args.mission!r} is not {{\"sites_m\": [[x, y], ...]}}: {exc}") from None
+    if args.rt_priority is not None and not 1 <= args.rt_priority <= 99:
+        raise ValueError(f"--rt-priority must be 1..99, got {args.rt_priority}")
     range_m = radio_range_m(args.power_mw) if args.power_mw is not None else args.range_m
     hold = None if args.hold_on_arrival is None else args.hold_on_arrival == "on"
     return AutopilotConfig(
@@ -78,7 +83,7 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         steps=args.steps, hold_on_arrival=hold, log_path=args.log, tlog_path=args.tlog, zenoh=ZenohSettings.from_args(args),
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
         gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
-        vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key)
+        vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key, rt_priority=args.rt_priority)
 
 
 def main(argv: list[str] | None = None) -> int:

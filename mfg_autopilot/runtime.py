@@ -87,6 +87,7 @@ class AutopilotConfig:
     traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
     traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
     checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
+    rt_priority: int | None = None            # SCHED_FIFO priority of the controller's threads (None: normal scheduling)
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -482,6 +483,41 @@ class Autopilot:
         return None
 
 
+def set_realtime_priority(priority: int, clog=None) -> bool:
+    """Put every thread of this process (the control loop, the MAVLink receive and setpoint
+    threads, Zenoh's) under SCHED_FIFO at `priority` (1-99), as a flight computer runs its
+    controller (PX4 runs its modules at SCHED_FIFO priorities): the control step is then not
+    preempted by normal-priority processes (the mocks, loggers) between telemetry and setpoint.
+    Needs CAP_SYS_NICE or an RLIMIT_RTPRIO >= priority; refused -> a log line and normal
+    scheduling (returns False). Every thread sleeps on a socket or a timer between steps, so
+    the kernel's real-time throttling is never reached."""
+    if not 1 <= int(priority) <= 99:
+        raise ValueError(f"--rt-priority must be 1..99, got {priority}")
+    if not hasattr(os, "sched_setscheduler"):
+        log.warning("--rt-priority %d: this platform has no sched_setscheduler; normal scheduling", priority)
+        return False
+    param = os.sched_param(int(priority))
+    tids = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
+    done, refused = 0, None
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+            done += 1
+        except ProcessLookupError:                 # a thread that ended meanwhile
+            continue
+        except PermissionError as exc:
+            refused = exc
+            break
+    if refused is not None:
+        log.warning("--rt-priority %d refused (%s: needs CAP_SYS_NICE or an rtprio limit); normal scheduling", priority, refused)
+        if clog is not None:
+            clog.event("rt_priority", priority=int(priority), applied=False, error=str(refused))
+        return False
+    if clog is not None:
+        clog.event("rt_priority", priority=int(priority), applied=True, threads=done)
+    return True
+
+
 def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> int:
     """Run one vehicle's controller to the end of its mission. Returns a process exit code."""
     stop = stop or threading.Event()
@@ -518,6 +554,8 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
             # frozen, so the cyclic GC's full collections during the flight have little to scan
             gc.collect()
             gc.freeze()
+            if cfg.rt_priority is not None:
+                set_realtime_priority(cfg.rt_priority, clog)
             if stop.is_set():
                 reason = "signal"
             else:

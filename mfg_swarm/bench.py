@@ -264,7 +264,7 @@ class _ChildSampler:
         return out
 
 
-def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = "mfg") -> dict:
+def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = "mfg", rt_priority: int | None = None) -> dict:
     from mfg_swarm.launcher import RunConfig, run_swarm
     from mfg_swarm.scenarios import make_scenario
 
@@ -272,7 +272,8 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
 
     dt = preset_by_name("default").dt_s
     cfg = RunConfig(scenario=make_scenario("paper", n), mode=mode, preset_name="default", out=out_dir, seed=0, steps=steps,
-                    range_m=10.0 if mode == "hjb" else None, lockstep=lockstep, progress=False)
+                    range_m=10.0 if mode == "hjb" else None, lockstep=lockstep, progress=False,
+                    controller_rt_priority=rt_priority)
     first_step = {"t": None, "cpu": {}}
     stop = threading.Event()
     samp = _ChildSampler()
@@ -325,14 +326,8 @@ def bench_swarm(out: Path, quick: bool = False) -> list[dict]:
     return res
 
 
-def bench_latency(out: Path, quick: bool = False) -> dict:
-    """A real-time flight of N = 1 (quick: 10 s, else 40 s = 80 steps at dt = 0.5 s)."""
-    from mfg_swarm.flightlog import read_controller_log  # noqa: F401 (format reference)
-
-    n, steps = (1, 20) if quick else (4, 80)
-    d = out / f"latency-n{n}"
-    rec = _swarm_point(n, steps, False, d)
-    lat, wake, compute = [], [], []
+def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
+    lat, wake, compute, rt = [], [], [], None
     for f in sorted((d / "controllers").glob("controller*.jsonl")):
         for line in f.read_text().splitlines():
             try:
@@ -344,9 +339,28 @@ def bench_latency(out: Path, quick: bool = False) -> dict:
                 if r.get("latency_wake_ms") is not None:
                     wake.append(float(r["latency_wake_ms"]))
                     compute.append(float(r["latency_compute_ms"]))
+            elif r.get("type") == "event" and r.get("what") == "rt_priority":
+                rt = bool(r.get("applied")) if rt is None else (rt and bool(r.get("applied")))
     st = _stats_ms(np.asarray(lat) / 1e3) if lat else {"n": 0}
     split = {k: _stats_ms(np.asarray(v) / 1e3) for k, v in (("wake", wake), ("compute", compute)) if v}
-    return {"n_vehicles": n, "steps": steps, "latency": st, "latency_split": split, "flight": rec}
+    return st, split, rt
+
+
+def bench_latency(out: Path, quick: bool = False, rt_priority: int | None = 50) -> dict:
+    """A real-time flight of N = 4 (quick: N = 1, 10 s; else 40 s = 80 steps at dt = 0.5 s), once
+    with normal scheduling and once with the controllers at SCHED_FIFO `rt_priority` (as a flight
+    computer runs its controller; recorded as not applied where the OS refuses it)."""
+    n, steps = (1, 20) if quick else (4, 80)
+    d = out / f"latency-n{n}"
+    rec = _swarm_point(n, steps, False, d)
+    st, split, _ = _latency_of(d)
+    res = {"n_vehicles": n, "steps": steps, "latency": st, "latency_split": split, "flight": rec}
+    if rt_priority is not None:
+        d_rt = out / f"latency-n{n}-rt{rt_priority}"
+        rec_rt = _swarm_point(n, steps, False, d_rt, rt_priority=rt_priority)
+        st_rt, split_rt, applied = _latency_of(d_rt)
+        res["rt"] = {"priority": rt_priority, "applied": applied, "latency": st_rt, "latency_split": split_rt, "flight": rec_rt}
+    return res
 
 
 def bench_pde_ratio(quick: bool = False) -> dict:
@@ -403,6 +417,13 @@ def format_table(res: dict) -> str:
                  + (f"{la['n']} steps, p50 {la['p50_ms']:.3f} ms, p99 {la['p99_ms']:.3f} ms, max {la['max_ms']:.3f} ms" if la["n"] else "no steps"))
         for part, st in res["latency"].get("latency_split", {}).items():
             L.append(f"  of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
+        rt = res["latency"].get("rt")
+        if rt:
+            lr = rt["latency"]
+            L.append(f"  controllers at SCHED_FIFO {rt['priority']} ({'applied' if rt['applied'] else 'NOT applied: normal scheduling'}): "
+                     + (f"{lr['n']} steps, p50 {lr['p50_ms']:.3f} ms, p99 {lr['p99_ms']:.3f} ms, max {lr['max_ms']:.3f} ms" if lr["n"] else "no steps"))
+            for part, st in rt.get("latency_split", {}).items():
+                L.append(f"    of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
     if "pde" in res:
         L.append("\nLearned vs solved (bench/pde_bench.py, N = 9, coarsest grid): time per decision")
         for r in res["pde"]["timing"]:

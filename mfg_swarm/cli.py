@@ -72,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--startup-timeout-s", type=float, default=None,
                      help="every controller must reach OFFBOARD within this (default: scales with N, the cores and "
                           "the load average, 120 s to 30 min); also each controller's start-up waits")
+    run.add_argument("--rt-priority", type=int, default=None, metavar="P",
+                     help="controllers run at SCHED_FIFO priority P (1-99; needs CAP_SYS_NICE), as on a flight computer")
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-plot", action="store_true", help="do not draw the figures after the flight")
 
@@ -140,7 +142,8 @@ def _cmd_run(args) -> int:
                     gcs_url="udpout:127.0.0.1:14550" if args.gcs else "none", time_limit_s=args.time_limit_s,
                     startup_timeout_s=args.startup_timeout_s,
                     progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
-                    zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config)
+                    zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config,
+                    controller_rt_priority=args.rt_priority)
     if args.mavlink_key:
         from mavlink_bridge import load_signing_key
         load_signing_key(args.mavlink_key)    # a missing or loose key file fails before any process starts

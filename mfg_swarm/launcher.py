@@ -89,6 +89,7 @@ class RunConfig:
     startup_timeout_s: float | None = None    # None: default_startup_timeout_s(N) (scales with N and the machine)
     progress: bool | None = None
     extra_controller_args: tuple[str, ...] = ()
+    controller_rt_priority: int | None = None  # SCHED_FIFO priority of every controller (mfg-autopilot --rt-priority)
     mavlink_key_file: str | None = None       # MAVLink 2 signing between every controller and its vehicle
     swarm: str | None = None                  # Zenoh key prefix mfg/<swarm>/ (default: run<pid>)
     zenoh_router_config: str | None = None    # router json5 (e.g. with access control, docs/security.md)
@@ -390,6 +391,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     argv += ["--zenoh-connect", f"tcp/127.0.0.1:{z_ports[0]}"]
             if cfg.mavlink_key_file:
                 argv += ["--mavlink-key", str(cfg.mavlink_key_file)]
+            if cfg.controller_rt_priority is not None:
+                argv += ["--rt-priority", str(int(cfg.controller_rt_priority))]
             argv += list(cfg.extra_controller_args)
             controllers.append(_Child(f"controller{i}", argv, out / "stderr" / f"controller{i}.log"))
         children = router + world + vehicles + controllers

@@ -58,3 +58,35 @@ def test_missing_mission_file_and_bad_preset(tmp_path):
     assert p.returncode == 2 and "mission file" in p.stderr and "not found" in p.stderr
     p = _swarm("sim", "--preset", "nonesuch", "--out", str(tmp_path / "e"))
     assert p.returncode == 2 and "unknown preset 'nonesuch'" in p.stderr
+
+
+def test_rt_priority_out_of_range_is_refused_before_anything_starts():
+    p = _autopilot("--connect", "udpin:127.0.0.1:1", "--rt-priority", "0")
+    assert p.returncode == 2 and "--rt-priority must be 1..99, got 0" in p.stderr
+
+
+def test_rt_priority_is_applied_to_every_thread_or_refused_with_a_log_line():
+    # given a process with a few threads (as a controller has: MAVLink receive, setpoint stream, Zenoh)
+    code = r"""
+import logging, os, sys, threading, json
+logging.basicConfig(level=logging.INFO, stream=sys.stderr)
+from mfg_autopilot.runtime import set_realtime_priority
+stop = threading.Event()
+ts = [threading.Thread(target=stop.wait, daemon=True) for _ in range(3)]
+for t in ts: t.start()
+ok = set_realtime_priority(20)
+tids = [int(t) for t in os.listdir("/proc/self/task")]
+pol = {tid: os.sched_getscheduler(tid) for tid in tids}
+stop.set()
+print(json.dumps({"ok": ok, "fifo": [p == os.SCHED_FIFO for p in pol.values()]}))
+"""
+    # when it asks for SCHED_FIFO 20 (a child process: the test runner keeps its own scheduling)
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    import json
+    r = json.loads(p.stdout.strip().splitlines()[-1])
+    # then either every thread runs SCHED_FIFO, or none does and the refusal is logged (no CAP_SYS_NICE)
+    if r["ok"]:
+        assert len(r["fifo"]) >= 4 and all(r["fifo"])
+    else:
+        assert not any(r["fifo"]) and "refused" in p.stderr and "normal scheduling" in p.stderr
