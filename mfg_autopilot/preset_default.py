@@ -165,6 +165,7 @@ class DefaultMFGController(_DefaultBase):
         self.sigma_F = make_sigma_F(p.learner.fpk_scale)
         self.w_F = np.zeros((self.n, self.sigma_F.M))
         self.plan: MeanFieldPlan | None = None
+        self._plan_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its particles), _plan_distance
         self.own_index = np.zeros(self.n, dtype=np.int64)
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
@@ -172,6 +173,7 @@ class DefaultMFGController(_DefaultBase):
         p = self.preset
         S0 = np.asarray(states, dtype=float)
         self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
+        self._plan_tree = None
         self.plan = MeanFieldPlan(S0, sites_m, p.dt_s, p.cost, p.guidance, p.repulsion, use_slots=p.use_slots,
                                   use_repulsion=p.use_repulsion)
         self._dest = self.plan.slots_m[self.own_index].copy()
@@ -192,11 +194,19 @@ class DefaultMFGController(_DefaultBase):
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
         margin = self._SENSED_POS_MARGIN_M + bp.plan_mismatch_s * self._SENSED_VEL_MARGIN_M_S
-        w = np.array([1.0, 1.0, bp.plan_mismatch_s, bp.plan_mismatch_s])
-        d, _ = cKDTree(self.plan.states * w).query(np.asarray(states, dtype=float) * w, k=1)
-        if np.any(d > bp.plan_mismatch_m - margin):
+        if np.any(self._plan_distance(np.asarray(states, dtype=float)) > bp.plan_mismatch_m - margin):
             return None
         return super().sensed_cutoff_m(states)
+
+    def _plan_distance(self, q: np.ndarray) -> np.ndarray:
+        """(m,) distance of states q to the nearest plan particle in the metric
+        |dr|^2 + (plan_mismatch_s |dv|)^2; the particles' k-d tree is built once per plan step."""
+        ps = self.preset.backstop.plan_mismatch_s
+        w = np.array([1.0, 1.0, ps, ps])
+        if self._plan_tree is None or self._plan_tree[0] != self.plan.k:
+            self._plan_tree = (self.plan.k, cKDTree(self.plan.states * w))
+        d, _ = self._plan_tree[1].query(q * w, k=1)
+        return d
 
     def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """Sensed vehicles farther than plan_mismatch_m from every plan particle, in the state
@@ -204,7 +214,6 @@ class DefaultMFGController(_DefaultBase):
         the same on every UAV - says where everyone should be; no communication needed)."""
         if sensed_states.shape[0] == 0:
             return np.zeros(0, dtype=bool)
-        w = np.array([1.0, 1.0, self.preset.backstop.plan_mismatch_s, self.preset.backstop.plan_mismatch_s])
         q = sensed_states
         if ids is not None and len(ids) == q.shape[0]:
             # the same vehicle is sensed by many rows: query each distinct state once (the same distance),
@@ -223,10 +232,8 @@ class DefaultMFGController(_DefaultBase):
                 _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
                 inv = inv.reshape(-1)
             if np.array_equal(q[first][inv], q):
-                d, _ = cKDTree(self.plan.states * w).query(q[first] * w, k=1)
-                return (d > self.preset.backstop.plan_mismatch_m)[inv]
-        d, _ = cKDTree(self.plan.states * w).query(q * w, k=1)
-        return d > self.preset.backstop.plan_mismatch_m
+                return (self._plan_distance(q[first]) > self.preset.backstop.plan_mismatch_m)[inv]
+        return self._plan_distance(q) > self.preset.backstop.plan_mismatch_m
 
     # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
     def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
