@@ -350,10 +350,11 @@ class VehicleLink:
             if self._tlog is not None:
                 self._tlog.maybe_flush()
 
-    def _send(self, msg: Message) -> None:
+    def _send(self, msg: Message) -> float:
+        """Send to the target; returns ``time.monotonic()`` when the packet was handed to the transport."""
         if self._closed.is_set():
             raise LinkClosed(f"link to system {self.target_system} is closed")
-        self.port.send(msg)
+        return self.port.send_timed(msg)[1]
 
     # ------------------------------------------------------------------ telemetry
     def latest(self, msg_type: type[M]) -> M | None:
@@ -425,9 +426,7 @@ class VehicleLink:
         sp = acceleration_setpoint(
             self.target_system, self.target_component, acc_ned_m_s2, self.time_boot_ms() if time_boot_ms is None else time_boot_ms
         )
-        if self._closed.is_set():
-            raise LinkClosed(f"link to system {self.target_system} is closed")
-        return self.port.send_timed(sp)[1]
+        return self._send(sp)
 
     def step_lockstep(
         self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int, timeout_s: float, retry_interval_s: float = 0.25

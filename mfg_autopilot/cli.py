@@ -73,8 +73,6 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
             raise ValueError(f"mission file {args.mission!r} not found") from None
         except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
             raise ValueError(f"mission file {args.mission!r} is not {{\"sites_m\": [[x, y], ...]}}: {exc}") from None
-    if args.rt_priority is not None and not 1 <= args.rt_priority <= 99:
-        raise ValueError(f"--rt-priority must be 1..99, got {args.rt_priority}")
     range_m = radio_range_m(args.power_mw) if args.power_mw is not None else args.range_m
     hold = None if args.hold_on_arrival is None else args.hold_on_arrival == "on"
     return AutopilotConfig(

@@ -563,13 +563,18 @@ class SwarmExchange:
         self.publish_state(step, time_s, own_state)
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while True:
-                waiting = ((self._present & self.expected_ids) - {self.vehicle_id} - self._silent
-                           - set(self._by_step.get(step, {})))
-                left = deadline - time.monotonic()
-                if not waiting or left <= 0:
-                    return frozenset(waiting)
-                self._cond.wait(left)
+            return frozenset(self._await_step(step, deadline))
+
+    def _await_step(self, step: int, deadline: float) -> set[int]:
+        """Caller holds ``_cond``: wait until every present, expected, not-silent vehicle has
+        published its state for ``step``, or the deadline; returns those still missing."""
+        while True:
+            waiting = ((self._present & self.expected_ids) - {self.vehicle_id} - self._silent
+                       - set(self._by_step.get(step, {})))
+            left = deadline - time.monotonic()
+            if not waiting or left <= 0:
+                return waiting
+            self._cond.wait(left)
 
     # ---- MFG: the t = 0 exchange -----------------------------------------------------
     def initial_exchange(self, state: Sequence[float], timeout_s: float,
@@ -648,20 +653,12 @@ class SwarmExchange:
         deadline = time.monotonic() + timeout_s
         with self._cond:
             if lockstep:
-                while True:
-                    got = self._by_step.get(step, {})
-                    waiting = ((self._present & self.expected_ids) - {self.vehicle_id}
-                               - self._silent - set(got))
-                    if not waiting:
-                        break
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        self._silent |= waiting
-                        log.warning("vehicle %d: no state for step %d from vehicles %s within "
-                                    "%.2f s; not waiting for them until they publish again",
-                                    self.vehicle_id, step, sorted(waiting), timeout_s)
-                        break
-                    self._cond.wait(left)
+                waiting = self._await_step(step, deadline)
+                if waiting:
+                    self._silent |= waiting
+                    log.warning("vehicle %d: no state for step %d from vehicles %s within "
+                                "%.2f s; not waiting for them until they publish again",
+                                self.vehicle_id, step, sorted(waiting), timeout_s)
                 candidates = list(self._by_step.get(step, {}).values())
                 # keep the buffer small: drop steps older than this one
                 self._min_step_kept = max(self._min_step_kept, step)

@@ -100,6 +100,8 @@ class AutopilotConfig:
             raise ValueError(f"the mission gives {len(self.sites_m)} destination sites for {self.n} vehicles")
         if self.steps < 1:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
+        if self.rt_priority is not None:
+            check_rt_priority(self.rt_priority)
 
     @property
     def system_id(self) -> int:
@@ -402,17 +404,17 @@ class Autopilot:
         return {"swarm": c.swarm, "instance": c.instance, "n": c.n, "mode": c.mode, "preset": c.preset,
                 "lockstep": c.lockstep, "sites": None if c.sites_m is None else [list(x) for x in c.sites_m]}
 
-    def _checkpoint(self, k: int, force: bool = False) -> None:
+    def _checkpoint(self, k: int) -> None:
         """Persist what must survive a controller crash (the t = 0 exchange as held by the
         controller, its learned weights, the mission clock), atomically; at most once per
-        ``checkpoint_interval_s`` of wall time unless ``force`` (step 0 always: the first
+        ``checkpoint_interval_s`` of wall time (step 0 always: the first
         call). A restarted controller resumes from the newest checkpoint, so from the
         controller state of at most that long ago; the mission clock (real time) and the
         vehicle's simulated time (lockstep) still place it on the right step."""
         if not self.cfg.state_dir:
             return
         now = time.monotonic()
-        if not force and now - self._last_checkpoint_monotonic_s < self.cfg.checkpoint_interval_s:
+        if now - self._last_checkpoint_monotonic_s < self.cfg.checkpoint_interval_s:
             return
         self._last_checkpoint_monotonic_s = now
         blob = pickle.dumps({"version": 1, "identity": self._identity(), "step": k, "ctrl": self.ctrl,
@@ -483,6 +485,12 @@ class Autopilot:
         return None
 
 
+def check_rt_priority(priority: int) -> None:
+    """The SCHED_FIFO priorities Linux accepts (1-99); ValueError otherwise."""
+    if not 1 <= int(priority) <= 99:
+        raise ValueError(f"--rt-priority must be 1..99, got {priority}")
+
+
 def set_realtime_priority(priority: int, clog=None) -> bool:
     """Put every thread of this process (the control loop, the MAVLink receive and setpoint
     threads, Zenoh's) under SCHED_FIFO at `priority` (1-99), as a flight computer runs its
@@ -491,8 +499,7 @@ def set_realtime_priority(priority: int, clog=None) -> bool:
     Needs CAP_SYS_NICE or an RLIMIT_RTPRIO >= priority; refused -> a log line and normal
     scheduling (returns False). Every thread sleeps on a socket or a timer between steps, so
     the kernel's real-time throttling is never reached."""
-    if not 1 <= int(priority) <= 99:
-        raise ValueError(f"--rt-priority must be 1..99, got {priority}")
+    check_rt_priority(priority)
     if not hasattr(os, "sched_setscheduler"):
         log.warning("--rt-priority %d: this platform has no sched_setscheduler; normal scheduling", priority)
         return False

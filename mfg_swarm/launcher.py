@@ -294,6 +294,12 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     n = sc.n
     if n < 1 or n > 253:
         raise LaunchError(f"N = {n} is impossible for a process swarm: MAVLink system ids allow 1..253 vehicles")
+    if cfg.controller_rt_priority is not None:
+        from mfg_autopilot.runtime import check_rt_priority     # the controller's own rule (runtime pulls in Zenoh: only when asked)
+        try:
+            check_rt_priority(cfg.controller_rt_priority)
+        except ValueError as exc:
+            raise LaunchError(str(exc)) from None
     preset = preset_by_name(cfg.preset_name)
     out = Path(cfg.out)
     for sub in ("vehicles", "controllers", "stderr"):

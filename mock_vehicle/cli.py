@@ -71,6 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]]:
     if args.instance < 0 or args.instance > 253:
         raise ValueError(f"--instance must be 0..253, got {args.instance}")
+    if args.lockstep and not args.lockstep_resend_hz > 0:
+        # in lockstep the position follows the steps and is re-sent at this rate while idle: with 0 a
+        # vehicle would never report its position before the first step, and no controller could start
+        raise ValueError(f"--lockstep-resend-hz must be > 0 in lockstep, got {args.lockstep_resend_hz}")
     wd = args.wind_diffusion
     diffusion = ((wd[0], 0.0), (0.0, wd[0])) if len(wd) == 1 else ((wd[0], wd[1]), (wd[2], wd[3]))
     wind = WindParams(c0_per_s=args.c0, mean_wind_m_s=tuple(args.mean_wind), wind_diffusion_m_s=diffusion)

@@ -90,3 +90,15 @@ print(json.dumps({"ok": ok, "fifo": [p == os.SCHED_FIFO for p in pol.values()]})
         assert len(r["fifo"]) >= 4 and all(r["fifo"])
     else:
         assert not any(r["fifo"]) and "refused" in p.stderr and "normal scheduling" in p.stderr
+
+
+def test_swarm_rt_priority_out_of_range_is_refused_before_any_process_starts(tmp_path):
+    p = _swarm("run", "--n", "2", "--rt-priority", "120", "--out", str(tmp_path / "r"), "--no-progress", "--no-plot")
+    assert p.returncode != 0 and "--rt-priority must be 1..99, got 120" in p.stderr
+    assert not (tmp_path / "r" / "controllers").exists() or not any((tmp_path / "r" / "controllers").iterdir())
+
+
+def test_lockstep_mock_that_could_never_report_its_position_is_refused():
+    p = subprocess.run([sys.executable, "-m", "mock_vehicle.cli", "--instance", "0", "--lockstep", "--lockstep-resend-hz", "0",
+                        "--onboard-url", "udpout:127.0.0.1:9"], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2 and "--lockstep-resend-hz must be > 0 in lockstep, got 0.0" in p.stderr
