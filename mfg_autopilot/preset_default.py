@@ -129,18 +129,18 @@ class _DefaultBase:
             planned &= ~off[sn.owner]
         da = backstop_acc(own, sn.states[planned], sn.owner[planned], bp)
         esc = np.zeros(self.n, dtype=bool)
+        if np.any(unplanned):
+            # the unplanned response's trigger and clearance, fitted to the slot spacing
+            sp = self._spacing_m()
+            u_trig, u_clear = min(bp.unplanned_trigger_m, 0.5 * sp), min(bp.unplanned_target_m, 0.6 * sp)
         if np.any(unplanned) and bp.escape:
             # escape manoeuvre for the rows an unplanned vehicle threatens (backstop.escape_acc);
             # the other rows keep the planned vehicles' half-plane response below
-            sp = self._spacing_m()
-            trig = np.where(unplanned, min(bp.unplanned_trigger_m, 0.5 * sp), 0.0)
-            clear = np.where(unplanned, min(bp.unplanned_target_m, 0.6 * sp),
-                             min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp))
+            trig = np.where(unplanned, u_trig, 0.0)
+            clear = np.where(unplanned, u_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp))
             a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, unplanned, trig, clear, bp)
         elif np.any(unplanned):
-            sp = self._spacing_m()
-            bu = replace(bp, trigger_m=min(bp.unplanned_trigger_m, 0.5 * sp), target_m=min(bp.unplanned_target_m, 0.6 * sp),
-                         share=bp.unplanned_share)
+            bu = replace(bp, trigger_m=u_trig, target_m=u_clear, share=bp.unplanned_share)
             da = cap_norm(da + backstop_acc(own, sn.states[unplanned], sn.owner[unplanned], bu), bp.a_max_m_s2)
         a, act = apply_backstop(cap_norm(a_nom, a_max), da, a_max)
         if np.any(esc):
@@ -257,7 +257,8 @@ class DefaultMFGController(_DefaultBase):
             used = np.flatnonzero(present)
             pos = (np.cumsum(present) - 1)[cols]
             # per pair m_hat = sum_m sig[m] w_F[m], summed sequentially over m = 0..M-1 (what einsum does with the
-            # pair axis contiguous; tests/test_scaling.py checks the two agree bit for bit), one feature at a time
+            # pair axis contiguous, bit for bit on the 16 reference runs; tests/test_scaling.py checks phi_G against a
+            # per-row brute-force quadrature), one feature at a time
             # from transposed tables: no (pairs, M_F) temporaries
             sigT = np.ascontiguousarray(self.sigma_F.value(x[used] - centroid[None, :]).T)      # (M_F, used)
             wT = np.ascontiguousarray(self.w_F.T)                                              # (M_F, n)

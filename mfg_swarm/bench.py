@@ -327,20 +327,20 @@ def bench_swarm(out: Path, quick: bool = False) -> list[dict]:
 
 
 def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
+    from mfg_swarm.flightlog import read_controller_log
+
     lat, wake, compute, rt = [], [], [], None
     for f in sorted((d / "controllers").glob("controller*.jsonl")):
-        for line in f.read_text().splitlines():
-            try:
-                r = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            if r.get("type") == "step" and r.get("latency_ms") is not None:
+        rec = read_controller_log(f)
+        for r in rec.steps:
+            if r.get("latency_ms") is not None:
                 lat.append(float(r["latency_ms"]))
                 if r.get("latency_wake_ms") is not None:
                     wake.append(float(r["latency_wake_ms"]))
                     compute.append(float(r["latency_compute_ms"]))
-            elif r.get("type") == "event" and r.get("what") == "rt_priority":
-                rt = bool(r.get("applied")) if rt is None else (rt and bool(r.get("applied")))
+        for e in rec.events:
+            if e.get("what") == "rt_priority":
+                rt = bool(e.get("applied")) if rt is None else (rt and bool(e.get("applied")))
     st = _stats_ms(np.asarray(lat) / 1e3) if lat else {"n": 0}
     split = {k: _stats_ms(np.asarray(v) / 1e3) for k, v in (("wake", wake), ("compute", compute)) if v}
     return st, split, rt

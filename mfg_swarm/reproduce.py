@@ -10,7 +10,6 @@ figures (Fig. 3, 4, 5) under the output folder.
 from __future__ import annotations
 
 import json
-import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -82,7 +81,6 @@ def reproduce(out: Path, presets: list[str], ns=PAPER_NS, seeds=(0, 1, 2), steps
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(p, mode, rng, n, s, steps, str(out / p / f"{label}-n{n}-seed{s}"))
             for p in presets for n in ns for s in seeds for mode, rng, label in MODES]
-    t0 = time.perf_counter()
     sim_wall_s = 0.0
     results: dict[tuple, list[dict]] = {}
     with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -116,8 +114,8 @@ def reproduce(out: Path, presets: list[str], ns=PAPER_NS, seeds=(0, 1, 2), steps
         for p in presets:
             for mode, rng, label in (("mfg", None, "MFG"), ("hjb", 100.0, "HJB_100")):
                 d = out / p / f"processes-{label}-n9-seed0"
-                if (d / "metrics.json").exists() and not json.loads((d / "metrics.json").read_text()).get("partial", True):
-                    m = json.loads((d / "metrics.json").read_text())
+                m = json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").exists() else {}
+                if not m.get("partial", True):
                     proc[(p, label)] = (m, results.get((p, label, 9), [None])[0])
                     continue
                 _, m = run_swarm(RunConfig(scenario=make_scenario("paper", 9), mode=mode, preset_name=p, out=d, seed=0,

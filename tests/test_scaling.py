@@ -134,19 +134,33 @@ def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch
     np.testing.assert_array_equal(t_cut.pos_m, t_all.pos_m)
 
 
-def test_phi_G_feature_loop_sums_like_the_einsum_it_replaced():
-    # given per-particle sigma_F rows, per-row w_F and (row, particle) pairs as _phi_G builds them
+def test_phi_G_equals_a_per_row_brute_force_quadrature():
+    # given a default MFG bank of 25 after the t = 0 exchange, with FPK weights that differ per row
+    import mfg_autopilot.preset_default as pd
+    from mfg_autopilot.costs import cs_kernel
+    sc = make_scenario("paper", 25)
+    s0 = np.concatenate([sc.initial_pos_m, np.tile(DEFAULT.cost.v_o, (25, 1))], axis=1)
+    ctrl = pd.DefaultMFGController(DEFAULT, sc.destination_m)
+    ctrl.exchange_t0(s0, np.arange(25), np.arange(25), sc.destination_m)
     rng = np.random.default_rng(5)
-    sig = np.asfortranarray(rng.standard_normal((700, 69)))      # sigma_F.value's layout
-    wF = rng.standard_normal((500, 69))
-    pos, rows = rng.integers(0, 700, 20000), np.sort(rng.integers(0, 500, 20000))
-    # when m_hat per pair is summed one feature at a time (DefaultMFGController._phi_G)
-    sigT, wT = np.ascontiguousarray(sig.T), np.ascontiguousarray(wF.T)
-    w = np.zeros(pos.size)
-    for m in range(69):
-        w += sigT[m][pos] * wT[m][rows]
-    # then it is bit-identical to the former einsum over the gathered Fortran-order block
-    np.testing.assert_array_equal(w, np.einsum("pm,pm->p", np.asfortranarray(sig[pos]), wF[rows]))
+    ctrl.w_F = ctrl.w_F + 0.3 * rng.standard_normal(ctrl.w_F.shape)
+    own = s0 + np.concatenate([rng.normal(0.0, 0.5, (25, 2)), rng.normal(0.0, 0.2, (25, 2))], axis=1)
+    x = ctrl.plan.states
+    centroid = x.mean(axis=0)
+    # when phi_G is evaluated (k-d tree pairs, FPK weights summed feature by feature)
+    phi, npairs = ctrl._phi_G(own, centroid)
+    # then it is eq. 11's FPK-weighted quadrature over the other particles within phi_g_radius_m, row by row
+    ref, count = np.zeros(25), 0
+    sig = ctrl.sigma_F.value(x - centroid[None, :])
+    for i in range(25):
+        j = np.flatnonzero(np.linalg.norm(x[:, 0:2] - own[i, 0:2], axis=1) <= DEFAULT.tracking.phi_g_radius_m)
+        j = j[j != ctrl.own_index[i]]
+        count += j.size
+        w = np.maximum(sig[j] @ ctrl.w_F[i], 0.0)
+        w = w / w.sum() if w.sum() > 0 else np.full(j.size, 1.0 / max(j.size, 1))
+        ref[i] = np.sum(w * cs_kernel(np.repeat(own[i:i + 1], j.size, axis=0), x[j], DEFAULT.cost))
+    assert npairs == count and count > 25
+    np.testing.assert_allclose(phi, ref, rtol=1e-12, atol=1e-15)
 
 
 def test_mfg_sensed_cutoff_covers_the_escape_once_a_vehicle_leaves_the_plan():
