@@ -296,6 +296,8 @@ class MavCodec:
         if self.signing is not None:  # spec: timestamp = max(last + 1, now); pymavlink adds the + 1
             self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp_now())
             packet = bytes(enc(self._tx, msg).pack(self._tx))
+        elif type(msg) in _FAST_TYPED:
+            packet = _pack_typed(msg, self._tx.seq, self.source_system, self.source_component)
         else:
             m = enc(self._tx, msg)
             spec = _FAST_ENCODE.get(type(m).id)        # (the class constant: STATUSTEXT has a field named id)
@@ -480,18 +482,35 @@ def _encode_specs(names: tuple[str, ...]) -> dict[int, tuple]:
     return specs
 
 
+_FAST_TYPED: dict[type, tuple[int, Callable]] = {
+    # the bulk of a lockstep step's traffic set: typed message -> payload values in wire order
+    # (what pymavlink's MAVLink_adsb_vehicle_message.pack passes to its struct), no pymavlink object
+    AdsbVehicle: (MAVLINK_MSG_ID["ADSB_VEHICLE"], lambda m: (
+        m.icao_address & 0xFFFFFFFF, m.lat_e7, m.lon_e7, m.altitude_mm, m.heading_cdeg, m.hor_velocity_cm_s,
+        m.ver_velocity_cm_s, m.flags, m.squawk, m.altitude_type, _s(m.callsign[:8]), m.emitter_type, m.tslc_s)),
+}
+
+
+def _pack_typed(msg: Message, seq: int, src_system: int, src_component: int) -> bytes:
+    msg_id, values = _FAST_TYPED[type(msg)]
+    unpacker, crc_extra_byte, _attrs = _FAST_ENCODE[msg_id]
+    return _frame(unpacker.pack(*values(msg)), msg_id, crc_extra_byte, seq, src_system, src_component)
+
+
+def _frame(payload: bytes, msg_id: int, crc_extra_byte: bytes, seq: int, src_system: int, src_component: int) -> bytes:
+    plen = len(payload)
+    while plen > 1 and payload[plen - 1] == 0:
+        plen -= 1
+    body = _HEADER_V2.pack(plen, 0, 0, seq, src_system, src_component, msg_id & 0xFFFF, msg_id >> 16) + payload[:plen]
+    return b"\xfd" + body + _CRC.pack(_crc_x25(body, crc_extra_byte))
+
+
 def _pack_fast(spec: tuple, m, seq: int, src_system: int, src_component: int) -> bytes:
     """An unsigned MAVLink 2 packet of pymavlink message ``m``, byte for byte what
     ``m.pack(mav)`` gives (trailing zero bytes of the payload trimmed, at least one kept; CRC with
     the message's CRC extra), without pymavlink's per-packet header object and bytearray copies."""
     unpacker, crc_extra_byte, attrs = spec
-    payload = unpacker.pack(*[getattr(m, a) for a in attrs])
-    plen = len(payload)
-    while plen > 1 and payload[plen - 1] == 0:
-        plen -= 1
-    msg_id = type(m).id
-    body = _HEADER_V2.pack(plen, 0, 0, seq, src_system, src_component, msg_id & 0xFFFF, msg_id >> 16) + payload[:plen]
-    return b"\xfd" + body + _CRC.pack(_crc_x25(body, crc_extra_byte))
+    return _frame(unpacker.pack(*[getattr(m, a) for a in attrs]), type(m).id, crc_extra_byte, seq, src_system, src_component)
 
 
 _HEADER_V2 = struct.Struct("<BBBBBBHB")     # after the 0xFD marker: len, incompat, compat, seq, sysid, compid, msgid (24 bit)
