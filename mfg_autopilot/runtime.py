@@ -142,7 +142,10 @@ class ControllerLog:
 
 def _jsonable(x):
     if isinstance(x, np.ndarray):
-        return [None if not math.isfinite(v) else v for v in x.astype(float).ravel().tolist()] if x.ndim <= 1 else x.tolist()
+        if x.ndim > 1:
+            return x.tolist()
+        v = x.astype(float).ravel()
+        return v.tolist() if np.isfinite(v).all() else [None if not math.isfinite(f) else f for f in v.tolist()]
     if isinstance(x, (np.floating, np.integer, np.bool_)):
         return x.item()
     raise TypeError(f"not JSON serialisable: {type(x)}")
@@ -195,12 +198,17 @@ class _PhaseClock:
         self.wall.append(time.perf_counter())
         self.cpu.append(time.thread_time())
 
-    def record(self, names: tuple[str, ...]) -> dict:
-        """{name_ms, name_cpu_ms for each phase between consecutive marks, rx_cpu_ms, gc_ms, gc_collections}."""
+    def phases(self, names: tuple[str, ...], first: int = 0) -> dict:
+        """{name_ms, name_cpu_ms} of the phases between consecutive marks from mark ``first`` on."""
         out = {}
-        for i, name in enumerate(names):
+        for i, name in enumerate(names, start=first):
             out[f"{name}_ms"] = round((self.wall[i + 1] - self.wall[i]) * 1e3, 4)
             out[f"{name}_cpu_ms"] = round((self.cpu[i + 1] - self.cpu[i]) * 1e3, 4)
+        return out
+
+    def record(self, names: tuple[str, ...]) -> dict:
+        """``phases(names)`` plus rx_cpu_ms, gc_ms, gc_collections since the previous record."""
+        out = self.phases(names)
         rx = self.link.rx_cpu_s
         out["rx_cpu_ms"] = round((rx - self._rx_cpu_s) * 1e3, 4)
         self._rx_cpu_s = rx
@@ -339,6 +347,7 @@ class Autopilot:
         cfg = self.cfg
         p = p0
         clock = _PhaseClock(self.link, self.gc_clock)
+        carried: dict = {}
         while True:
             if self.stop.is_set():
                 return "signal"
@@ -363,9 +372,14 @@ class Autopilot:
             deadline = time.monotonic() + self.cfg.step_timeout_s
             self.link.send_acc_setpoint(sp, t_ms)
             clock.mark()
-            self._record(k, t_ms / 1000.0, state, acc, info, obs, None, clock.record(("observe", "control", "send")))
+            timing = clock.record(("observe", "control", "send"))
+            timing.update(carried)      # the previous step's log line + checkpoint, and its wait for this position
+            self._record(k, t_ms / 1000.0, state, acc, info, obs, None, timing)
             self._checkpoint(k)
+            clock.mark()
             p = self._lockstep_await_position(sp, t_ms, deadline)
+            clock.mark()
+            carried = clock.phases(("log", "wait"), first=3)
 
     def _lockstep_await_position(self, sp: tuple[float, float, float], t_ms: int, deadline: float) -> LocalPositionNed:
         """Wait for the position stamped after t_ms (the setpoint stamped t_ms was sent),
