@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import re
 import signal
 import socket
 import subprocess
@@ -261,6 +262,10 @@ class _Progress:
             sys.stderr.write("\n")
 
 
+_STEP_PREFIX = re.compile(rb'\{"type":"step","step":(\d+),"time_s":([-+0-9.eE]+),')
+"""The head of a step record as ControllerLog writes it (compact separators, keys in this order)."""
+
+
 def _controller_status(paths: list[Path], offsets: list[int], state: list[dict]) -> None:
     """Read new lines of each controller log (incrementally) into state[i]."""
     for i, p in enumerate(paths):
@@ -275,6 +280,11 @@ def _controller_status(paths: list[Path], offsets: list[int], state: list[dict])
             continue
         offsets[i] += cut + 1
         for line in data[: cut + 1].splitlines():
+            m = _STEP_PREFIX.match(line)
+            if m is not None:      # a step record: only its step and time are needed (not its ~2 KB of weights)
+                state[i]["step"] = int(m.group(1))
+                state[i]["time_s"] = float(m.group(2))
+                continue
             try:
                 rec = json.loads(line)
             except json.JSONDecodeError:
