@@ -63,3 +63,29 @@ def test_controller_status_reads_step_heads_and_full_events(tmp_path):
         fh.write('me_s":2.5,"state":[0,0,0,0]}\n{"type":"end","reason":"mission_time"}\n')
     _controller_status([path], offsets, state)
     assert (state[0]["step"], state[0]["time_s"], state[0]["end"]) == (5, 2.5, "mission_time")
+
+
+def test_bytecode_cache_for_children_when_byte_code_writing_is_off(tmp_path, monkeypatch):
+    """Given PYTHONDONTWRITEBYTECODE (as in some CI sandboxes), the launcher compiles the
+    children's modules once into a private 0700 cache and hands the children its prefix; without
+    the variable the children inherit the environment unchanged (None)."""
+    import os
+    import stat
+    import tempfile
+
+    from mfg_swarm import launcher
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.delenv("PYTHONPYCACHEPREFIX", raising=False)
+    monkeypatch.delenv("PYTHONDONTWRITEBYTECODE", raising=False)
+    assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log") is None
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    env = launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log")
+    prefix = Path(env["PYTHONPYCACHEPREFIX"])
+    assert prefix.parent == tmp_path and stat.S_IMODE(prefix.stat().st_mode) == 0o700
+    assert env["PYTHONDONTWRITEBYTECODE"] == "1"          # the children still write nothing themselves
+    runtime_src = Path(launcher.__file__).resolve().parent.parent / "mfg_autopilot" / "runtime.py"
+    assert list(prefix.rglob(f"runtime.{sys.implementation.cache_tag}.pyc")), (tmp_path / "warm.log").read_text()
+    os.chmod(prefix, 0o777)                               # a cache others could write to is never used
+    assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log") is None
+    assert runtime_src.exists()
