@@ -280,9 +280,14 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
 
     def watch() -> None:               # when the first control step record appears (start-up over)
         log = out_dir / "controllers" / "controller0.jsonl"
+        offset = 0
         while not stop.is_set() and first_step["t"] is None:
             try:
-                if '"type": "step"' in log.read_text() or '"type":"step"' in log.read_text():
+                with open(log, "rb") as fh:                 # only what was appended since the last look
+                    fh.seek(max(0, offset - 16))
+                    data = fh.read()
+                    offset = fh.tell()
+                if b'"type": "step"' in data or b'"type":"step"' in data:
                     first_step["t"] = time.perf_counter()
                     first_step["cpu"] = dict(samp.cpu)       # CPU spent by then: start-up
             except OSError:
@@ -313,6 +318,11 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
         flight = sum(samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
                      for pid, role in samp.role.items() if role in ("mock", "controller"))
         rec.update(cpu_s_per_pair_flight=flight / n, cpu_ms_per_pair_step_flight=flight / n / steps * 1e3)
+        by_role: dict[str, float] = {}
+        for pid, role in samp.role.items():
+            by_role[role] = by_role.get(role, 0.0) + samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
+        # flight CPU per step of each role summed over its processes (the world and the router are serial or shared)
+        rec["cpu_ms_per_step_flight_by_role"] = {r: c / steps * 1e3 for r, c in sorted(by_role.items())}
     rec["load_after"] = _load()
     return rec
 
