@@ -340,6 +340,7 @@ def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
     from mfg_swarm.flightlog import read_controller_log
 
     lat, wake, compute, rt = [], [], [], None
+    phases: dict[str, list[float]] = {}
     for f in sorted((d / "controllers").glob("controller*.jsonl")):
         rec = read_controller_log(f)
         for r in rec.steps:
@@ -348,11 +349,21 @@ def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
                 if r.get("latency_wake_ms") is not None:
                     wake.append(float(r["latency_wake_ms"]))
                     compute.append(float(r["latency_compute_ms"]))
+                t = r.get("timing") or {}
+                if "control_cpu_ms" in t:
+                    # the control step's own CPU (thread time) and what it was not running (preempted, GIL),
+                    # split by whether the backstop acted (its response costs the numeric step ~2x)
+                    kind = "backstop_active" if r.get("backstop_active") else "backstop_idle"
+                    for name, v in ((f"control_cpu_{kind}", t["control_cpu_ms"]),
+                                    ("control_not_running", t["control_ms"] - t["control_cpu_ms"]),
+                                    ("observe", t.get("observe_ms", math.nan)), ("send", t.get("send_ms", math.nan))):
+                        phases.setdefault(name, []).append(float(v))
         for e in rec.events:
             if e.get("what") == "rt_priority":
                 rt = bool(e.get("applied")) if rt is None else (rt and bool(e.get("applied")))
     st = _stats_ms(np.asarray(lat) / 1e3) if lat else {"n": 0}
     split = {k: _stats_ms(np.asarray(v) / 1e3) for k, v in (("wake", wake), ("compute", compute)) if v}
+    split.update({k: _stats_ms(np.asarray(v) / 1e3) for k, v in sorted(phases.items()) if v and np.all(np.isfinite(v))})
     return st, split, rt
 
 
