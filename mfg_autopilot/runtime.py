@@ -184,7 +184,7 @@ class _PhaseClock:
 
     def __init__(self, link: VehicleLink, gc_clock: GcClock | None) -> None:
         self.link, self.gc_clock = link, gc_clock
-        self._rx_cpu_s = link.rx_cpu_s
+        self._rx_cpu_s = getattr(link, "rx_cpu_s", 0.0)
         self._gc_s = gc_clock.total_s if gc_clock is not None else 0.0
         self._gc_n = gc_clock.collections if gc_clock is not None else 0
         self.wall: list[float] = []
@@ -209,7 +209,7 @@ class _PhaseClock:
     def record(self, names: tuple[str, ...]) -> dict:
         """``phases(names)`` plus rx_cpu_ms, gc_ms, gc_collections since the previous record."""
         out = self.phases(names)
-        rx = self.link.rx_cpu_s
+        rx = getattr(self.link, "rx_cpu_s", 0.0)
         out["rx_cpu_ms"] = round((rx - self._rx_cpu_s) * 1e3, 4)
         self._rx_cpu_s = rx
         if self.gc_clock is not None:
