@@ -53,8 +53,30 @@ ADSB_FLAGS_EMULATED = 1 | 2 | 4 | 8 | 16 | 64
 """VALID_COORDS | VALID_ALTITUDE | VALID_HEADING | VALID_VELOCITY | VALID_CALLSIGN | SIMULATED."""
 
 _DEG_PER_E7 = 1e-7
-_COS_CDEG = np.array([math.cos(math.radians(h * 0.01)) for h in range(36000)])
-_SIN_CDEG = np.array([math.sin(math.radians(h * 0.01)) for h in range(36000)])
+_TRIG_CDEG: dict[int, tuple[float, float]] = {}
+"""heading (cdeg) -> (cos, sin), filled as headings are seen: the full 36,000-entry table of
+scalar ``math`` calls cost ~12 ms of CPU in every process's start-up (mock, world and controller)."""
+_TRIG_TABLE: np.ndarray | None = None   # (36000, 2), built once for large sets (the simulator at large N)
+_TRIG_TABLE_FROM = 4096
+
+
+def _cos_sin_cdeg(h: int) -> tuple[float, float]:
+    cs = _TRIG_CDEG.get(h)
+    if cs is None:
+        r = math.radians(h * 0.01)
+        cs = _TRIG_CDEG[h] = (math.cos(r), math.sin(r))
+    return cs
+
+
+def _trig(hdg: np.ndarray) -> np.ndarray:
+    """(m, 2) [cos, sin] of headings (m,) in 0..35999 cdeg: scalar ``math`` of h * 0.01 degrees,
+    the same bits for any m."""
+    global _TRIG_TABLE
+    if hdg.shape[0] >= _TRIG_TABLE_FROM:
+        if _TRIG_TABLE is None:
+            _TRIG_TABLE = np.array([_cos_sin_cdeg(h) for h in range(36000)])
+        return _TRIG_TABLE[hdg]
+    return np.array([_cos_sin_cdeg(h) for h in hdg.tolist()], dtype=np.float64).reshape(-1, 2)
 
 
 def traffic_tag(time_boot_ms: int) -> str:
@@ -107,8 +129,9 @@ def traffic_to_local_ned(lat_e7, lon_e7, hor_velocity_cm_s, heading_cdeg, home_l
     out[:, 0] = (lat - home_lat_e7).astype(np.float64) * m_n
     out[:, 1] = (lon - home_lon_e7).astype(np.float64) * m_e
     speed = spd.astype(np.float64) / 100.0
-    out[:, 2] = speed * _COS_CDEG[hdg]
-    out[:, 3] = speed * _SIN_CDEG[hdg]
+    cs = _trig(hdg)
+    out[:, 2] = speed * cs[:, 0]
+    out[:, 3] = speed * cs[:, 1]
     return out
 
 
@@ -116,7 +139,8 @@ def adsb_states(reports: list[AdsbVehicle], home: HomePosition | tuple[float, fl
     """(vehicle ids (m,), local NED states (m, 4)) of a traffic set, sorted by vehicle id."""
     reports = sorted(reports, key=lambda r: r.icao_address)
     h_lat, h_lon = home_e7(home)
-    ids = np.array([vehicle_id_of_icao(r.icao_address) for r in reports], dtype=np.int64)
-    states = traffic_to_local_ned([r.lat_e7 for r in reports], [r.lon_e7 for r in reports],
-                                  [r.hor_velocity_cm_s for r in reports], [r.heading_cdeg for r in reports], h_lat, h_lon)
+    wire = np.array([(r.icao_address, r.lat_e7, r.lon_e7, r.hor_velocity_cm_s, r.heading_cdeg) for r in reports],
+                    dtype=np.int64).reshape(-1, 5)
+    ids = wire[:, 0] - 1                       # vehicle_id_of_icao
+    states = traffic_to_local_ned(wire[:, 1], wire[:, 2], wire[:, 3], wire[:, 4], h_lat, h_lon)
     return ids, states

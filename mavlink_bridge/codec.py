@@ -8,8 +8,10 @@ the environment says. MAVLink 1 packets are still parsed on input.
 
 from __future__ import annotations
 
+import collections
 import math
 import os
+import struct
 import time
 from dataclasses import replace
 from typing import Callable
@@ -293,7 +295,14 @@ class MavCodec:
             raise TypeError(f"cannot encode {type(msg).__name__}") from None
         if self.signing is not None:  # spec: timestamp = max(last + 1, now); pymavlink adds the + 1
             self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp_now())
-        packet = bytes(enc(self._tx, msg).pack(self._tx))
+            packet = bytes(enc(self._tx, msg).pack(self._tx))
+        elif type(msg) in _FAST_TYPED:
+            packet = _pack_typed(msg, self._tx.seq, self.source_system, self.source_component)
+        else:
+            m = enc(self._tx, msg)
+            spec = _FAST_ENCODE.get(type(m).id)        # (the class constant: STATUSTEXT has a field named id)
+            packet = (bytes(m.pack(self._tx)) if spec is None
+                      else _pack_fast(spec, m, self._tx.seq, self.source_system, self.source_component))
         self._tx.seq = (self._tx.seq + 1) % 256
         return packet
 
@@ -432,27 +441,86 @@ def read_tlog_selected(path: str, msg_ids: frozenset[int]):
     return out
 
 
-class _Fields:
-    """A pymavlink message's fields by name (what the ``_DECODERS`` read)."""
+def _crc_x25(buf: bytes, crc_extra_byte: bytes) -> int:
+    """MAVLink's CRC-16/MCRF4XX of ``buf`` followed by the CRC extra byte (pymavlink's x25crc)."""
+    if _MCRF4XX is not None:
+        return _MCRF4XX(crc_extra_byte, _MCRF4XX(buf, 0xFFFF))
+    return _mavlink.x25crc(buf + crc_extra_byte).crc
 
-    def __init__(self, names: tuple[str, ...], values: tuple) -> None:
-        for k, v in zip(names, values):
-            setattr(self, k, v.rstrip(b"\x00") if isinstance(v, bytes) else v)
+
+_MCRF4XX = getattr(_mavlink, "mcrf4xx", None)    # fastcrc's C implementation, when pymavlink found it
 
 
 def _fast_specs(names: tuple[str, ...]) -> dict[int, tuple]:
+    """msg id -> (struct, CRC extra byte, field-tuple type, decoder) for the fast decoder: the
+    unpacked payload becomes a named tuple with pymavlink's field names (what ``_DECODERS`` read)."""
     specs = {}
     for name in names:
         msg_id = MAVLINK_MSG_ID[name]
         cls = _mavlink.mavlink_map[msg_id]
         if len(cls.unpacker.unpack(bytes(cls.unpacker.size))) != len(cls.ordered_fieldnames):
             continue  # a numeric array field (pymavlink regroups it): not on the fast path
-        specs[msg_id] = (cls.unpacker, cls.crc_extra, tuple(cls.ordered_fieldnames), _DECODERS[name])
+        fields = collections.namedtuple(f"_{name}", cls.ordered_fieldnames, rename=True)
+        if list(fields._fields) != list(cls.ordered_fieldnames):
+            continue  # a field name a named tuple cannot carry
+        specs[msg_id] = (cls.unpacker, bytes((cls.crc_extra,)), fields._make, _DECODERS[name])
     return specs
+
+
+def _encode_specs(names: tuple[str, ...]) -> dict[int, tuple]:
+    """msg id -> (struct, CRC extra byte, attribute names in wire order) for ``_pack_fast``: the
+    attributes pymavlink's own ``pack`` reads (``_<name>_raw`` for char arrays)."""
+    specs = {}
+    for name in names:
+        msg_id = MAVLINK_MSG_ID[name]
+        cls = _mavlink.mavlink_map[msg_id]
+        if len(cls.unpacker.unpack(bytes(cls.unpacker.size))) != len(cls.ordered_fieldnames):
+            continue  # an array field: pymavlink packs it element by element
+        attrs = tuple(f"_{f}_raw" if t == "char" else f for f, t in zip(cls.fieldnames, cls.fieldtypes))
+        order = [cls.fieldnames.index(f) for f in cls.ordered_fieldnames]
+        specs[msg_id] = (cls.unpacker, bytes((cls.crc_extra,)), tuple(attrs[i] for i in order))
+    return specs
+
+
+_FAST_TYPED: dict[type, tuple[int, Callable]] = {
+    # the bulk of a lockstep step's traffic set: typed message -> payload values in wire order
+    # (what pymavlink's MAVLink_adsb_vehicle_message.pack passes to its struct), no pymavlink object
+    AdsbVehicle: (MAVLINK_MSG_ID["ADSB_VEHICLE"], lambda m: (
+        m.icao_address & 0xFFFFFFFF, m.lat_e7, m.lon_e7, m.altitude_mm, m.heading_cdeg, m.hor_velocity_cm_s,
+        m.ver_velocity_cm_s, m.flags, m.squawk, m.altitude_type, _s(m.callsign[:8]), m.emitter_type, m.tslc_s)),
+}
+
+
+def _pack_typed(msg: Message, seq: int, src_system: int, src_component: int) -> bytes:
+    msg_id, values = _FAST_TYPED[type(msg)]
+    unpacker, crc_extra_byte, _attrs = _FAST_ENCODE[msg_id]
+    return _frame(unpacker.pack(*values(msg)), msg_id, crc_extra_byte, seq, src_system, src_component)
+
+
+def _frame(payload: bytes, msg_id: int, crc_extra_byte: bytes, seq: int, src_system: int, src_component: int) -> bytes:
+    plen = len(payload)
+    while plen > 1 and payload[plen - 1] == 0:
+        plen -= 1
+    body = _HEADER_V2.pack(plen, 0, 0, seq, src_system, src_component, msg_id & 0xFFFF, msg_id >> 16) + payload[:plen]
+    return b"\xfd" + body + _CRC.pack(_crc_x25(body, crc_extra_byte))
+
+
+def _pack_fast(spec: tuple, m, seq: int, src_system: int, src_component: int) -> bytes:
+    """An unsigned MAVLink 2 packet of pymavlink message ``m``, byte for byte what
+    ``m.pack(mav)`` gives (trailing zero bytes of the payload trimmed, at least one kept; CRC with
+    the message's CRC extra), without pymavlink's per-packet header object and bytearray copies."""
+    unpacker, crc_extra_byte, attrs = spec
+    return _frame(unpacker.pack(*[getattr(m, a) for a in attrs]), type(m).id, crc_extra_byte, seq, src_system, src_component)
+
+
+_HEADER_V2 = struct.Struct("<BBBBBBHB")     # after the 0xFD marker: len, incompat, compat, seq, sysid, compid, msgid (24 bit)
+_CRC = struct.Struct("<H")
 
 
 _FAST = _fast_specs(("ADSB_VEHICLE", "NAMED_VALUE_INT", "LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT",
                      "HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION"))
+_FAST_ENCODE = _encode_specs(("ADSB_VEHICLE", "NAMED_VALUE_INT", "LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT",
+                              "HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "SYS_STATUS", "EXTENDED_SYS_STATE"))
 
 
 def _decode_fast(data: bytes, now: float) -> list[Received] | None:
@@ -470,17 +538,20 @@ def _decode_fast(data: bytes, now: float) -> list[Received] | None:
         spec = _FAST.get(data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16))
         if spec is None:
             return None
-        unpacker, crc_extra, names, dec = spec
-        if plen > unpacker.size or _mavlink.x25crc(data[i + 1 : end - 2] + bytes((crc_extra,))).crc != (data[end - 2] | (data[end - 1] << 8)):
+        unpacker, crc_extra_byte, fields, dec = spec
+        if plen > unpacker.size or _crc_x25(data[i + 1 : end - 2], crc_extra_byte) != (data[end - 2] | (data[end - 1] << 8)):
             return None
         payload = data[i + 10 : end - 2]
         if plen < unpacker.size:
             payload += bytes(unpacker.size - plen)   # MAVLink 2 trims trailing zero bytes
         try:
-            msg = dec(_Fields(names, unpacker.unpack(payload)))
+            msg = dec(fields(unpacker.unpack(payload)))
         except Exception:
             return None
-        out.append(Received(replace(msg, received_monotonic_s=now), data[i + 5], data[i + 6], bytes(data[i:end]), SIG_UNSIGNED))
+        # the message was built just now and is not shared yet: stamp it in place (a frozen
+        # dataclass's replace() re-runs __init__ and cost more than the rest of the decode)
+        object.__setattr__(msg, "received_monotonic_s", now)
+        out.append(Received(msg, data[i + 5], data[i + 6], data[i:end], SIG_UNSIGNED))
         i = end
     return out
 

@@ -126,6 +126,8 @@ class VehicleLink:
         self._held_time_boot_ms: int | None = None
         self._stream_stop: threading.Event | None = None
         self._stream_thread: threading.Thread | None = None
+        self.rx_cpu_s = 0.0
+        """CPU time (``time.thread_time``) the receive thread has used so far, updated after each read."""
         self._rx_thread = threading.Thread(target=self._rx_loop, name=f"mav-rx-{target_system}", daemon=True)
         self._rx_thread.start()
         self._hb_period_s = 1.0 / heartbeat_rate_hz if heartbeat_rate_hz > 0 else math.inf
@@ -201,6 +203,7 @@ class VehicleLink:
                 continue
             if received:
                 self._on_messages(received)
+            self.rx_cpu_s = time.thread_time()
 
     def _on_messages(self, received: list[Received]) -> None:
         """One datagram's messages: filtered, then stored under one lock acquisition with one

@@ -112,8 +112,7 @@ class MavlinkPort:
                 self.transport.send(b"".join(chunk))
             self.n_sent += len(packets)
         if self.tlog is not None:
-            for packet in packets:
-                self.tlog.write(packet)
+            self.tlog.write_many(packets)
         return packets
 
     def send_raw(self, data: bytes) -> None:
@@ -134,13 +133,11 @@ class MavlinkPort:
             accept = getattr(self.transport, "accept_sender", None)
             if accept is not None:
                 accept()
-        for r in out:
-            if isinstance(r.msg, BadData):
-                self.n_bad += 1
-            else:
-                self.n_received += 1
-                if self.tlog is not None:
-                    self.tlog.write(r.raw)
+        good = [r.raw for r in out if not isinstance(r.msg, BadData)]
+        self.n_bad += len(out) - len(good)
+        self.n_received += len(good)
+        if self.tlog is not None:
+            self.tlog.write_many(good)
         return out
 
     def fileno(self) -> int:

@@ -43,6 +43,20 @@ class TlogWriter:
             self.n_records += 1
         self.maybe_flush()
 
+    def write_many(self, packets: list[bytes], unix_time_s: float | None = None) -> None:
+        """Append several packets with one stamp (sent or received together): one record each,
+        as ``write`` would give them, under one lock and one file write."""
+        packets = [p for p in packets if p]
+        if not packets:
+            return
+        stamp = _STAMP.pack(int((time.time() if unix_time_s is None else unix_time_s) * 1e6))
+        with self._lock:
+            if self._f.closed:
+                return
+            self._f.write(stamp + stamp.join(packets))
+            self.n_records += len(packets)
+        self.maybe_flush()
+
     def maybe_flush(self) -> None:
         """Flush if ``flush_interval_s`` has passed since the last flush."""
         now = time.monotonic()

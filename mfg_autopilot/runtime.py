@@ -142,10 +142,82 @@ class ControllerLog:
 
 def _jsonable(x):
     if isinstance(x, np.ndarray):
-        return [None if not math.isfinite(v) else v for v in x.astype(float).ravel().tolist()] if x.ndim <= 1 else x.tolist()
+        if x.ndim > 1:
+            return x.tolist()
+        v = x.astype(float).ravel()
+        return v.tolist() if np.isfinite(v).all() else [None if not math.isfinite(f) else f for f in v.tolist()]
     if isinstance(x, (np.floating, np.integer, np.bool_)):
         return x.item()
     raise TypeError(f"not JSON serialisable: {type(x)}")
+
+
+class GcClock:
+    """Wall time the cyclic garbage collector paused this process (``gc.callbacks``; any
+    thread's collections): ``total_s`` and ``collections`` since install."""
+
+    def __init__(self) -> None:
+        self.total_s = 0.0
+        self.collections = 0
+        self._t: float | None = None
+
+    def __call__(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._t = time.perf_counter()
+        elif self._t is not None:
+            self.total_s += time.perf_counter() - self._t
+            self.collections += 1
+            self._t = None
+
+    def install(self) -> "GcClock":
+        gc.callbacks.append(self)
+        return self
+
+    def remove(self) -> None:
+        if self in gc.callbacks:
+            gc.callbacks.remove(self)
+
+
+class _PhaseClock:
+    """Per-step phase timings for the step record's ``timing`` (docs/controller_log.md): wall
+    (perf_counter) and this thread's CPU (thread_time) at each mark, the MAVLink receive
+    thread's CPU and the GC pause time since the previous step record."""
+
+    def __init__(self, link: VehicleLink, gc_clock: GcClock | None) -> None:
+        self.link, self.gc_clock = link, gc_clock
+        self._rx_cpu_s = getattr(link, "rx_cpu_s", 0.0)
+        self._gc_s = gc_clock.total_s if gc_clock is not None else 0.0
+        self._gc_n = gc_clock.collections if gc_clock is not None else 0
+        self.wall: list[float] = []
+        self.cpu: list[float] = []
+
+    def start(self) -> None:
+        self.wall = [time.perf_counter()]
+        self.cpu = [time.thread_time()]
+
+    def mark(self) -> None:
+        self.wall.append(time.perf_counter())
+        self.cpu.append(time.thread_time())
+
+    def phases(self, names: tuple[str, ...], first: int = 0) -> dict:
+        """{name_ms, name_cpu_ms} of the phases between consecutive marks from mark ``first`` on."""
+        out = {}
+        for i, name in enumerate(names, start=first):
+            out[f"{name}_ms"] = round((self.wall[i + 1] - self.wall[i]) * 1e3, 4)
+            out[f"{name}_cpu_ms"] = round((self.cpu[i + 1] - self.cpu[i]) * 1e3, 4)
+        return out
+
+    def record(self, names: tuple[str, ...]) -> dict:
+        """``phases(names)`` plus rx_cpu_ms, gc_ms, gc_collections since the previous record."""
+        out = self.phases(names)
+        rx = getattr(self.link, "rx_cpu_s", 0.0)
+        out["rx_cpu_ms"] = round((rx - self._rx_cpu_s) * 1e3, 4)
+        self._rx_cpu_s = rx
+        if self.gc_clock is not None:
+            g, n = self.gc_clock.total_s, self.gc_clock.collections
+            out["gc_ms"] = round((g - self._gc_s) * 1e3, 4)
+            out["gc_collections"] = n - self._gc_n
+            self._gc_s, self._gc_n = g, n
+        return out
 
 
 def _state_of(p: LocalPositionNed) -> np.ndarray:
@@ -156,8 +228,10 @@ def _state_of(p: LocalPositionNed) -> np.ndarray:
 class Autopilot:
     """One vehicle's controller process, given an open link and exchange."""
 
-    def __init__(self, cfg: AutopilotConfig, link: VehicleLink, exchange: SwarmExchange, clog: ControllerLog, stop: threading.Event) -> None:
+    def __init__(self, cfg: AutopilotConfig, link: VehicleLink, exchange: SwarmExchange, clog: ControllerLog, stop: threading.Event,
+                 gc_clock: GcClock | None = None) -> None:
         self.cfg, self.link, self.exchange, self.clog, self.stop = cfg, link, exchange, clog, stop
+        self.gc_clock = gc_clock
         self.preset = preset_by_name(cfg.preset)
         self.sites = cfg.sites_array()
         self.ctrl = make_controller(cfg.mode, self.preset, self.sites[cfg.instance : cfg.instance + 1])
@@ -246,7 +320,7 @@ class Autopilot:
         return Neighbours(states, np.zeros(len(ids), dtype=np.int64), ids)
 
     def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation,
-                latency_s: tuple[float, float, float] | None) -> None:
+                latency_s: tuple[float, float, float] | None, timing: dict | None = None) -> None:
         w = self.ctrl.weights()
         rec = {"type": "step", "step": k, "time_s": t_s, "state": state, "acc_m_s2": acc,
                "grad_evals": int(info.grad_evals[0]), "mf_evals": int(info.mf_evals[0]),
@@ -260,6 +334,8 @@ class Autopilot:
             rec["w_F"] = w["w_F"][0]
         if latency_s is not None:
             rec["latency_ms"], rec["latency_wake_ms"], rec["latency_compute_ms"] = (x * 1e3 for x in latency_s)
+        if timing is not None:
+            rec["timing"] = timing
         self.clog.write(rec)
 
     def _arrived(self, state: np.ndarray) -> bool:
@@ -270,9 +346,12 @@ class Autopilot:
     def run_lockstep(self, p0: LocalPositionNed) -> str:
         cfg = self.cfg
         p = p0
+        clock = _PhaseClock(self.link, self.gc_clock)
+        carried: dict = {}
         while True:
             if self.stop.is_set():
                 return "signal"
+            clock.start()
             t_ms = p.time_boot_ms
             k = t_ms // self.dt_ms                  # the step index is the vehicle's simulated time
             if k >= cfg.steps:
@@ -283,16 +362,24 @@ class Autopilot:
                 return "mission_time"
             state = _state_of(p)
             obs = self._observe(k, state, t_ms / 1000.0)
+            clock.mark()
             info = self.ctrl.step(obs)
+            clock.mark()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             sp = (float(acc[0]), float(acc[1]), 0.0)
             # the setpoint goes on the wire first: the vehicle (and the world barrier behind it)
             # steps while this process writes its log line and checkpoint
             deadline = time.monotonic() + self.cfg.step_timeout_s
             self.link.send_acc_setpoint(sp, t_ms)
-            self._record(k, t_ms / 1000.0, state, acc, info, obs, None)
+            clock.mark()
+            timing = clock.record(("observe", "control", "send"))
+            timing.update(carried)      # the previous step's log line + checkpoint, and its wait for this position
+            self._record(k, t_ms / 1000.0, state, acc, info, obs, None, timing)
             self._checkpoint(k)
+            clock.mark()
             p = self._lockstep_await_position(sp, t_ms, deadline)
+            clock.mark()
+            carried = clock.phases(("log", "wait"), first=3)
 
     def _lockstep_await_position(self, sp: tuple[float, float, float], t_ms: int, deadline: float) -> LocalPositionNed:
         """Wait for the position stamped after t_ms (the setpoint stamped t_ms was sent),
@@ -317,6 +404,7 @@ class Autopilot:
         arrived_since = None
         stale = False
         last_k = -1
+        clock = _PhaseClock(self.link, self.gc_clock)
         while True:
             k_due = int(math.floor((time.time() - self.mission_start_unix_s) / self.dt_s + 1e-9))
             k = max(k_due, last_k + 1)          # on time: the next step; late (or resumed): the one due now
@@ -348,14 +436,18 @@ class Autopilot:
                 self.clog.event("telemetry_back")
                 self._resume_offboard()
             t_woken = time.monotonic()
+            clock.start()
             state = _state_of(p)
             last_k = k
             obs = self._observe(k, state, p.time_boot_ms / 1000.0)
+            clock.mark()
             info = self.ctrl.step(obs)
+            clock.mark()
             t_computed = time.monotonic()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             sp = (float(acc[0]), float(acc[1]), 0.0)
             sent_monotonic_s = self.link.send_acc_setpoint(sp)
+            clock.mark()
             self.link.set_held_setpoint(sp)
             # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
             # transport has one) -> this setpoint handed to the kernel; logging and the
@@ -363,7 +455,7 @@ class Autopilot:
             # thread, wake-up), the observation + control step, the send.
             latency = (sent_monotonic_s - p.received_monotonic_s,
                        t_woken - p.received_monotonic_s, t_computed - t_woken)
-            self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency)
+            self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency, clock.record(("observe", "control", "send")))
             self._checkpoint(k)
             ended = self._check_mode()
             if ended:
@@ -533,6 +625,7 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
                                                                      for k, v in vars(cfg).items()}})
     link = None
     reason = "error"
+    gc_clock = GcClock().install()
     try:
         key = None if cfg.mavlink_key_file is None else load_signing_key(cfg.mavlink_key_file)
         # the swarm's session first: a bad Zenoh configuration fails before anything flies
@@ -549,7 +642,7 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
             if p0 is None:
                 raise _Stopped()
             s0 = _state_of(p0)
-            ap = Autopilot(cfg, link, exchange, clog, stop)
+            ap = Autopilot(cfg, link, exchange, clog, stop, gc_clock)
             try:
                 n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
             except ExchangeStopped:
@@ -594,6 +687,7 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
             except BridgeError as exc:
                 clog.event("hold_failed", error=str(exc))
             link.close()
+        gc_clock.remove()
         clog.close()
 
 

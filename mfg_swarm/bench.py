@@ -280,9 +280,14 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
 
     def watch() -> None:               # when the first control step record appears (start-up over)
         log = out_dir / "controllers" / "controller0.jsonl"
+        offset = 0
         while not stop.is_set() and first_step["t"] is None:
             try:
-                if '"type": "step"' in log.read_text() or '"type":"step"' in log.read_text():
+                with open(log, "rb") as fh:                 # only what was appended since the last look
+                    fh.seek(max(0, offset - 16))
+                    data = fh.read()
+                    offset = fh.tell()
+                if b'"type": "step"' in data or b'"type":"step"' in data:
                     first_step["t"] = time.perf_counter()
                     first_step["cpu"] = dict(samp.cpu)       # CPU spent by then: start-up
             except OSError:
@@ -313,6 +318,11 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
         flight = sum(samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
                      for pid, role in samp.role.items() if role in ("mock", "controller"))
         rec.update(cpu_s_per_pair_flight=flight / n, cpu_ms_per_pair_step_flight=flight / n / steps * 1e3)
+        by_role: dict[str, float] = {}
+        for pid, role in samp.role.items():
+            by_role[role] = by_role.get(role, 0.0) + samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
+        # flight CPU per step of each role summed over its processes (the world and the router are serial or shared)
+        rec["cpu_ms_per_step_flight_by_role"] = {r: c / steps * 1e3 for r, c in sorted(by_role.items())}
     rec["load_after"] = _load()
     return rec
 
@@ -330,6 +340,7 @@ def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
     from mfg_swarm.flightlog import read_controller_log
 
     lat, wake, compute, rt = [], [], [], None
+    phases: dict[str, list[float]] = {}
     for f in sorted((d / "controllers").glob("controller*.jsonl")):
         rec = read_controller_log(f)
         for r in rec.steps:
@@ -338,11 +349,21 @@ def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
                 if r.get("latency_wake_ms") is not None:
                     wake.append(float(r["latency_wake_ms"]))
                     compute.append(float(r["latency_compute_ms"]))
+                t = r.get("timing") or {}
+                if "control_cpu_ms" in t:
+                    # the control step's own CPU (thread time) and what it was not running (preempted, GIL),
+                    # split by whether the backstop acted (its response costs the numeric step ~2x)
+                    kind = "backstop_active" if r.get("backstop_active") else "backstop_idle"
+                    for name, v in ((f"control_cpu_{kind}", t["control_cpu_ms"]),
+                                    ("control_not_running", t["control_ms"] - t["control_cpu_ms"]),
+                                    ("observe", t.get("observe_ms", math.nan)), ("send", t.get("send_ms", math.nan))):
+                        phases.setdefault(name, []).append(float(v))
         for e in rec.events:
             if e.get("what") == "rt_priority":
                 rt = bool(e.get("applied")) if rt is None else (rt and bool(e.get("applied")))
     st = _stats_ms(np.asarray(lat) / 1e3) if lat else {"n": 0}
     split = {k: _stats_ms(np.asarray(v) / 1e3) for k, v in (("wake", wake), ("compute", compute)) if v}
+    split.update({k: _stats_ms(np.asarray(v) / 1e3) for k, v in sorted(phases.items()) if v and np.all(np.isfinite(v))})
     return st, split, rt
 
 

@@ -308,6 +308,35 @@ def test_fast_datagram_decoding_equals_pymavlink():
     assert C._decode_fast(packets[0][:-3], 0.0) is None
 
 
+def test_fast_encoding_equals_pymavlink_byte_for_byte():
+    """Given the hot telemetry types (random values, all-zero payloads, sequence numbers
+    wrapping past 255), MavCodec.encode's own packer gives exactly the bytes of pymavlink's
+    ``pack``; a signing codec still packs with pymavlink."""
+    import random
+
+    import numpy as np
+
+    from mavlink_bridge import NamedValueInt
+    from mavlink_bridge import codec as C
+    from mavlink_bridge.signing import SigningConfig
+
+    msgs = _telemetry_mix(2) + [LocalPositionNed(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), NamedValueInt(0, "", 0),
+                                Heartbeat(type=0, autopilot=0, base_mode=0, custom_mode=0, system_status=0, mavlink_version=0)]
+    rng = random.Random(3)
+    msgs += [LocalPositionNed(rng.randrange(2**32), *(rng.uniform(-1e4, 1e4) for _ in range(6))) for _ in range(50)]
+    assert {C.MAVLINK_MSG_ID[n] for n in ("ADSB_VEHICLE", "LOCAL_POSITION_NED", "SET_POSITION_TARGET_LOCAL_NED")} <= set(C._FAST_ENCODE)
+    fast, ref = MavCodec(9, 1), MavCodec(9, 1)
+    for i in range(600):
+        m = msgs[i % len(msgs)]
+        expected = bytes(C._ENCODERS[type(m)](ref._tx, m).pack(ref._tx))
+        ref._tx.seq = (ref._tx.seq + 1) % 256
+        assert fast.encode(m) == expected, (i, m)
+    signed = MavCodec(9, 1, SigningConfig(bytes(range(32)), 0))
+    packet = signed.encode(LocalPositionNed(5, 1.0, 2.0, 3.0, 0.0, 0.0, 0.0))
+    assert packet[2] & 0x01 and len(packet) == 12 + packet[1] + 13     # signed: pymavlink's path
+    assert np.all([isinstance(r.msg, LocalPositionNed) for r in MavCodec(1, 1).decode_datagram(fast.encode(msgs[-1]))])
+
+
 def test_selective_tlog_read_equals_the_full_read(tmp_path):
     """read_tlog(only=...) returns the same records as the pymavlink read, filtered, also when
     the last record was cut short by a killed writer."""

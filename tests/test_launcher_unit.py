@@ -33,3 +33,59 @@ def test_startup_report_names_stages_and_the_last_log_line(tmp_path):
     assert "last at 'nothing logged (process starting)': [2]" in text
     assert "controller0 (exit 0: waiting for the t = 0 exchange 0" in text
     assert "[1]" not in text
+
+
+def test_controller_status_reads_step_heads_and_full_events(tmp_path):
+    """Given a controller log written by ControllerLog (events, step records with arrays, a
+    step record in another key order, a truncated last line), the launcher's incremental
+    status reader gets every event, the newest step and time, and keeps the partial line."""
+    import json
+
+    import numpy as np
+
+    from mfg_autopilot.runtime import ControllerLog
+    from mfg_swarm.launcher import _controller_status
+
+    path = tmp_path / "controller0.jsonl"
+    clog = ControllerLog(str(path))
+    clog.event("armed")
+    clog.write({"type": "step", "step": 3, "time_s": 1.5, "state": np.arange(4.0), "w_H": np.ones(54)})
+    clog.event("offboard")
+    clog.close()
+    state, offsets = [dict()], [0]
+    _controller_status([path], offsets, state)
+    assert state[0] == {"armed": True, "offboard": True, "step": 3, "time_s": 1.5}
+    with open(path, "a") as fh:
+        fh.write(json.dumps({"time_s": 2.0, "type": "step", "step": 4}) + "\n" + '{"type":"step","step":5,"ti')
+    _controller_status([path], offsets, state)
+    assert (state[0]["step"], state[0]["time_s"]) == (4, 2.0)
+    with open(path, "a") as fh:
+        fh.write('me_s":2.5,"state":[0,0,0,0]}\n{"type":"end","reason":"mission_time"}\n')
+    _controller_status([path], offsets, state)
+    assert (state[0]["step"], state[0]["time_s"], state[0]["end"]) == (5, 2.5, "mission_time")
+
+
+def test_bytecode_cache_for_children_when_byte_code_writing_is_off(tmp_path, monkeypatch):
+    """Given PYTHONDONTWRITEBYTECODE (as in some CI sandboxes), the launcher compiles the
+    children's modules once into a private 0700 cache and hands the children its prefix; without
+    the variable the children inherit the environment unchanged (None)."""
+    import os
+    import stat
+    import tempfile
+
+    from mfg_swarm import launcher
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.delenv("PYTHONPYCACHEPREFIX", raising=False)
+    monkeypatch.delenv("PYTHONDONTWRITEBYTECODE", raising=False)
+    assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log") is None
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    env = launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log")
+    prefix = Path(env["PYTHONPYCACHEPREFIX"])
+    assert prefix.parent == tmp_path and stat.S_IMODE(prefix.stat().st_mode) == 0o700
+    assert env["PYTHONDONTWRITEBYTECODE"] == "1"          # the children still write nothing themselves
+    runtime_src = Path(launcher.__file__).resolve().parent.parent / "mfg_autopilot" / "runtime.py"
+    assert list(prefix.rglob(f"runtime.{sys.implementation.cache_tag}.pyc")), (tmp_path / "warm.log").read_text()
+    os.chmod(prefix, 0o777)                               # a cache others could write to is never used
+    assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log") is None
+    assert runtime_src.exists()

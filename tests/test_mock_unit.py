@@ -243,3 +243,31 @@ def test_realtime_next_deadline_includes_the_offboard_loss_failsafe():
     clock.t = d
     v.tick()
     assert v.mode == PX4_HOLD
+
+
+def test_world_datagrams_are_the_documented_struct_layout():
+    """Given answers of 0..40 random float64 states, pack_answer gives exactly the bytes of the
+    documented layout packed entry by entry with struct ("<4sBBHIH" then "<H4f": float32
+    rounding included), and unpack gives them back; malformed datagrams raise ValueError."""
+    import struct
+
+    from mock_vehicle.world import KIND_ANSWER, MAGIC, Answer, pack_answer, pack_report, unpack
+
+    rng = np.random.default_rng(4)
+    for m in (0, 1, 2, 24, 40):
+        ids = np.sort(rng.choice(1000, size=m, replace=False)).astype(np.int64)
+        states = rng.normal(size=(m, 4)) * 10.0 ** rng.integers(-3, 4, size=(m, 4))
+        data = pack_answer(Answer(7, 123456, ids, states))
+        ref = struct.pack("<4sBBHIH", MAGIC, 1, KIND_ANSWER, 7, 123456, m) + b"".join(
+            struct.pack("<H4f", int(i), *(float(v) for v in s)) for i, s in zip(ids, states))
+        assert data == ref
+        kind, vid, t_ms, ids2, st2 = unpack(data)
+        assert (kind, vid, t_ms) == (KIND_ANSWER, 7, 123456)
+        assert np.array_equal(ids2, ids) and np.array_equal(st2, states.astype(np.float32).astype(np.float64))
+    kind, vid, t_ms, ids, st = unpack(pack_report(3, 500, np.array([1.5, -2.0, 0.25, 0.0])))
+    assert (kind, vid, t_ms, ids.tolist(), st.tolist()) == (1, 3, 500, [3], [[1.5, -2.0, 0.25, 0.0]])
+    good = pack_answer(Answer(1, 0, np.array([2]), np.zeros((1, 4))))
+    with pytest.raises(ValueError, match="does not hold"):
+        unpack(good[:-1])
+    with pytest.raises(ValueError, match="non-finite"):
+        unpack(pack_answer(Answer(1, 0, np.array([2, 3]), np.array([[0.0, math.inf, 0, 0], [0, 0, 0, 0]]))))

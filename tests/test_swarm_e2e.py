@@ -2,6 +2,7 @@
 on loopback. The lockstep flight must equal `mfg-swarm sim` (the processes add transport only)."""
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -53,6 +54,13 @@ def test_lockstep_process_swarm_equals_the_simulator(tmp_path, mode, range_m):
         assert (out / "vehicles" / f"vehicle{i}.tlog").stat().st_size > 0
         lines = (out / "controllers" / f"controller{i}.jsonl").read_text().splitlines()
         assert json.loads(lines[-1])["type"] in ("event", "end")
+        # every step record says where its time went (docs/controller_log.md), all finite and >= 0
+        recs = [r for r in map(json.loads, lines) if r["type"] == "step"]
+        assert [r["step"] for r in recs] == list(range(steps))
+        for r in recs:
+            keys = {"observe_ms", "observe_cpu_ms", "control_ms", "control_cpu_ms", "send_ms", "send_cpu_ms", "rx_cpu_ms",
+                    "gc_ms", "gc_collections"} | ({"log_ms", "log_cpu_ms", "wait_ms", "wait_cpu_ms"} if r["step"] else set())
+            assert keys <= set(r["timing"]) and all(math.isfinite(v) and v >= 0 for v in r["timing"].values()), r["timing"]
     # the same flight as the simulator, within the float32 telemetry resolution
     traj_p = load_trajectories(out / "trajectories.npz")
     traj_s, m_s = simulate(SimConfig(make_scenario("paper", n), mode, preset_by_name("paper"), seed=seed, steps=steps,
