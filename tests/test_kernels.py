@@ -213,3 +213,23 @@ except ValueError:
     # then numba's threading layer was never started
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "no threads 1"
+
+
+def test_plan_distance_shortcut_gives_exactly_the_tree_decision():
+    # given a default MFG bank and states around the plan particles, many of them near the mismatch threshold
+    rng = np.random.default_rng(12)
+    ctrl, _ = _default_bank(81, rng)
+    x = ctrl.plan.states
+    thr = DEFAULT.backstop.plan_mismatch_m
+    ps = DEFAULT.backstop.plan_mismatch_s
+    u = rng.normal(size=(400, 4))
+    u /= np.linalg.norm(u * np.array([1.0, 1.0, ps, ps]), axis=1, keepdims=True)
+    hint = rng.integers(0, 81, 400)
+    q = x[hint] + u * thr * rng.choice([0.5, 1.0 - 1e-12, 1.0, 1.0 + 1e-12, 3.0], 400)[:, None]
+    # when the own-particle shortcut decides (right hint, wrong hint, no hint)
+    expected = ctrl._plan_distance(q) > thr
+    # then it is the k-d tree's decision for every state
+    assert expected.any() and (~expected).any()
+    np.testing.assert_array_equal(ctrl._beyond_plan(q, thr, hint), expected)
+    np.testing.assert_array_equal(ctrl._beyond_plan(q, thr, (hint + 7) % 81), expected)
+    np.testing.assert_array_equal(ctrl._beyond_plan(q, thr), expected)
