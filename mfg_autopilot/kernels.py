@@ -208,11 +208,13 @@ _hessian_serial, _hessian_parallel = _variants(_hessian_impl)
 
 
 def _f64(a) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.float64)
+    # C-contiguous and writeable: one compiled signature per kernel (a read-only view, e.g. from
+    # np.broadcast_to, would be another type and load or compile another specialisation)
+    return np.require(a, dtype=np.float64, requirements=["C", "W"])
 
 
 def _i64(a) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.int64)
+    return np.require(a, dtype=np.int64, requirements=["C", "W"])
 
 
 def _threads(n: int) -> bool:
