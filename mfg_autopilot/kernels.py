@@ -11,9 +11,9 @@ Row independence: every output row is computed by the same compiled per-row
 function from that row's inputs only, with every sum taken in a fixed sequential
 order (no fast-math, no reassociation), so a row's result does not depend on the
 bank size or on whether the bank ran on worker threads (``tests/test_kernels.py``).
-A bank of ``PARALLEL_MIN_ROWS`` or more rows runs the row loop on numba's worker
-threads (prange); a smaller bank - in particular a vehicle's own controller, a bank
-of one - never starts a worker thread.
+A bank of ``PARALLEL_MIN_ROWS`` or more rows (opt-in; default: never) runs the row
+loop on numba's worker threads (prange); a vehicle's own controller, a bank of one,
+never starts a worker thread.
 
 Symbols as in ``features`` and ``learners``: exponents E (M, 4), scale (4,) with
 s_tilde = s / scale, weights w (n, M); states (n, 4) [x_m, y_m, vx_m_s, vy_m_s].
@@ -36,9 +36,12 @@ from numba import njit, prange
 __all__ = ["PARALLEL_MIN_ROWS", "feature_tables", "hessian_table", "grad_psi", "hjb_update_rows", "fpk_update_rows",
            "phi_G_plan", "warm_up"]
 
-PARALLEL_MIN_ROWS = 512
-"""Banks with at least this many rows run on numba's worker threads; smaller ones (a vehicle's own
-controller: one row) run in the calling thread only."""
+PARALLEL_MIN_ROWS: int | None = None
+"""Banks with at least this many rows run on numba's worker threads (prange); smaller ones - a vehicle's
+own controller, a bank of one, in any case - run in the calling thread only. None (the default): never.
+Measured on the shared 2-core machine (docs/benchmarks.md, third round): with other jobs running, the
+threaded simulator at N = 10,000 was slower than the single-threaded one (OpenMP workers spin-waiting
+for a busy core; the workqueue layer too), so threads are opt-in (e.g. 512 on a dedicated machine)."""
 
 _CHUNK_ROWS = 32
 """Rows per scratch allocation (and per unit of work on the worker threads)."""
@@ -218,7 +221,7 @@ def _i64(a) -> np.ndarray:
 
 
 def _threads(n: int) -> bool:
-    return n >= PARALLEL_MIN_ROWS
+    return PARALLEL_MIN_ROWS is not None and n >= PARALLEL_MIN_ROWS
 
 
 def feature_tables(E: np.ndarray, scale: np.ndarray, s: np.ndarray, order: int):
