@@ -13,6 +13,8 @@ physical state s, so that the models' nabla psi and nabla^2 psi are in SI units.
 
 Shapes: ``s`` (n, 4) with columns [x_m, y_m, vx_m_s, vy_m_s]; values (n, M);
 gradients (n, M, 4); Hessians (n, M, 4, 4); velocity-block Hessians (n, M, 2, 2).
+The tables are computed row by row by ``mfg_autopilot.kernels`` (numba); the learners
+use its fused kernels, which contract with the weights without building the tables.
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
+
+from . import kernels
 
 __all__ = ["MonomialFeatures", "sigma_H_exponents", "sigma_F_exponents", "make_sigma_H", "make_sigma_F"]
 
@@ -66,82 +70,38 @@ class MonomialFeatures:
     def M(self) -> int:
         return self.exponents.shape[0]
 
-    # -- factor tables -------------------------------------------------------------
-    def _factors(self, s: np.ndarray, order: int):
-        """Per-dimension factors F[d] = st_d^e, dF[d] = e st_d^(e-1), d2F[d] = e(e-1) st_d^(e-2), each (n, M)."""
+    def _states(self, s: np.ndarray) -> np.ndarray:
         s = np.asarray(s, dtype=float)
         if s.ndim != 2 or s.shape[1] != 4:
             raise ValueError(f"states must be (n, 4), got {s.shape}")
-        st = s / self.scale
-        D = self._max_deg
-        powers = st[:, :, None] ** np.arange(D + 1)[None, None, :]    # (n, 4, D+1)
-        E = self.exponents
-        F, dF, d2F = [], [], []
-        for d in range(4):
-            e = E[:, d]
-            p = powers[:, d, :]
-            F.append(p[:, e])
-            if order >= 1:
-                dF.append(e * p[:, np.maximum(e - 1, 0)])
-            if order >= 2:
-                d2F.append(e * (e - 1) * p[:, np.maximum(e - 2, 0)])
-        return F, dF, d2F
+        return s
 
     def value(self, s: np.ndarray) -> np.ndarray:
         """sigma(s), (n, M)."""
-        F, _, _ = self._factors(s, 0)
-        return F[0] * F[1] * F[2] * F[3]
+        return kernels.feature_tables(self.exponents, self.scale, self._states(s), 0)[0]
 
     def value_grad(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """sigma(s) (n, M) and d sigma / d s (n, M, 4)."""
-        F, dF, _ = self._factors(s, 1)
-        return F[0] * F[1] * F[2] * F[3], self._grad(F, dF)
-
-    def _grad(self, F, dF) -> np.ndarray:
-        n, M = F[0].shape
-        J = np.empty((n, M, 4))
-        for d in range(4):
-            g = dF[d]
-            for e in range(4):
-                if e != d:
-                    g = g * F[e]
-            J[:, :, d] = g / self.scale[d]
-        return J
-
-    def _hess_entry(self, F, dF, d2F, d: int, e: int) -> np.ndarray:
-        if d == e:
-            h = d2F[d]
-            others = [k for k in range(4) if k != d]
-        else:
-            h = dF[d] * dF[e]
-            others = [k for k in range(4) if k not in (d, e)]
-        for k in others:
-            h = h * F[k]
-        return h / (self.scale[d] * self.scale[e])
+        sig, J, _ = kernels.feature_tables(self.exponents, self.scale, self._states(s), 1)
+        return sig, J
 
     def value_grad_hessvel(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """sigma (n, M), gradient (n, M, 4), and the velocity block of the Hessian
         d^2 sigma / d v d v (n, M, 2, 2): all that tr(G G^T nabla^2) needs, since
         G = [0; V_o] (eq. 9) only acts on the velocity."""
-        F, dF, d2F = self._factors(s, 2)
-        sig = F[0] * F[1] * F[2] * F[3]
-        J = self._grad(F, dF)
-        n, M = sig.shape
-        Hv = np.empty((n, M, 2, 2))
-        Hv[:, :, 0, 0] = self._hess_entry(F, dF, d2F, 2, 2)
-        Hv[:, :, 1, 1] = self._hess_entry(F, dF, d2F, 3, 3)
-        Hv[:, :, 0, 1] = Hv[:, :, 1, 0] = self._hess_entry(F, dF, d2F, 2, 3)
-        return sig, J, Hv
+        return kernels.feature_tables(self.exponents, self.scale, self._states(s), 2)
 
     def hessian(self, s: np.ndarray) -> np.ndarray:
         """Full Hessian d^2 sigma / d s^2, (n, M, 4, 4)."""
-        F, dF, d2F = self._factors(s, 2)
-        n, M = F[0].shape
-        H = np.empty((n, M, 4, 4))
-        for d in range(4):
-            for e in range(d, 4):
-                H[:, :, d, e] = H[:, :, e, d] = self._hess_entry(F, dF, d2F, d, e)
-        return H
+        return kernels.hessian_table(self.exponents, self.scale, self._states(s))
+
+    def grad_psi(self, s: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """nabla psi(s) = sum_k w_k nabla sigma_k(s) for psi = w^T sigma, row by row: s (n, 4), w (n, M) -> (n, 4).
+        Without the (n, M, 4) table."""
+        w = np.asarray(w, dtype=float)
+        if w.shape != (np.shape(s)[0], self.M):
+            raise ValueError(f"weights must be (n, {self.M}), got {w.shape}")
+        return kernels.grad_psi(self.exponents, self.scale, self._states(s), w)
 
 
 def make_sigma_H(state_scale) -> MonomialFeatures:

@@ -30,10 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .costs import phi_L_state
+from . import kernels
 from .features import MonomialFeatures, make_sigma_H
 from .meanfield import MeanField
-from .model import lqr_value_weights, nominal_drift, optimal_action, saturate, saturate_jacobian
+from .model import lqr_value_weights, optimal_action, saturate
 from .params import Preset
 
 __all__ = ["StepInfo", "HJBLearner", "MFGLearner", "hjb_update", "policy_action"]
@@ -50,52 +50,30 @@ class StepInfo:
     mf_evals: np.ndarray          # (n,) mean-field evaluations this step (MFG only)
 
 
-def _normalised(g: np.ndarray) -> np.ndarray:
-    """g / |g| row-wise, 0 where g = 0 (the paper's sign(x) = x/|x|)."""
-    nrm = np.linalg.norm(g, axis=1, keepdims=True)
-    return np.where(nrm > 0, g / np.maximum(nrm, 1e-300), 0.0)
-
-
 def policy_action(sigma_H: MonomialFeatures, w_H: np.ndarray, s_rel: np.ndarray, preset: Preset) -> np.ndarray:
     """a* = sat(-(1/(2 c3)) B^T grad psi_hat(s)) for states s_rel (n, 4) and weights w_H (n, M)."""
-    _, J = sigma_H.value_grad(s_rel)
-    grad_psi = np.einsum("nmd,nm->nd", J, w_H)
+    grad_psi = sigma_H.grad_psi(s_rel, w_H)
     return saturate(optimal_action(grad_psi, preset.cost.c3), preset.learner.acc_max_m_s2)
 
 
 def hjb_update(sigma_H: MonomialFeatures, w_H: np.ndarray, s_rel: np.ndarray, phi_g: np.ndarray, preset: Preset):
     """One weight update of Algorithm 3, step 2, for every learner of a bank.
 
-    Returns (w_new (n, M), residual H_hat (n,), R active (n,) bool, feature tuple at s).
+    Returns (w_new (n, M), residual H_hat (n,), R active (n,) bool, (grad psi (n, 4),
+    psi_vxvx + psi_vyvy (n,))): the last pair is the value model's gradient and velocity
+    Laplacian at s_rel with the NEW weights - what the action a* (eq. 8) and the FPK
+    model's drift divergence (eq. 10) need - so that nobody evaluates the features again.
+
+    Computed row by row by ``kernels.hjb_update_rows`` (the formulas of the module docstring;
+    a row's result does not depend on the bank size).
     """
     cost, lp = preset.cost, preset.learner
-    sig, J, Hv = sigma_H.value_grad_hessvel(s_rel)
-    GGt = cost.V_o @ cost.V_o.T
-    T = np.einsum("nmab,ab->nm", Hv, GGt)                       # tr(G G^T hess sigma_k)
-    grad_psi = np.einsum("nmd,nm->nd", J, w_H)
-    f0 = nominal_drift(s_rel, np.zeros((s_rel.shape[0], 2)), cost)   # A s + B c0 v_o
-    p = grad_psi[:, 2:4]                                          # B^T grad psi
-    H_hat = (np.einsum("nd,nd->n", f0, grad_psi) - np.einsum("nd,nd->n", p, p) / (4 * cost.c3)
-             + 0.5 * np.einsum("nm,nm->n", w_H, T) + phi_L_state(s_rel, cost) + cost.c4 * phi_g)
-    dH_dw = (np.einsum("nmd,nd->nm", J, f0) - np.einsum("nmv,nv->nm", J[:, :, 2:4], p) / (2 * cost.c3) + 0.5 * T)
-    grad_l = H_hat[:, None] * dH_dw                              # grad_w of l_H = H_hat^2 / 2
-
-    # Regulariser R = max(0, s~^T ds~/dt), s~ = s / scale, nominal drift under sat(a*).
-    scale = sigma_H.scale
-    u = optimal_action(grad_psi, cost.c3)
-    a = saturate(u, lp.acc_max_m_s2)
-    ds = nominal_drift(s_rel, a, cost)
-    st = s_rel / scale
-    R = np.einsum("nd,nd->n", st, ds / scale)
-    active = R > 0
-    grad_R = np.zeros_like(w_H)
-    if np.any(active):
-        Ds = saturate_jacobian(u[active], lp.acc_max_m_s2)             # (k, 2, 2)
-        du_dw = -J[active][:, :, 2:4] / (2 * cost.c3)                 # (k, M, 2)
-        coef = st[active][:, 2:4] / scale[2:4]                         # d R / d v
-        grad_R[active] = np.einsum("kv,kvu,kmu->km", coef, Ds, du_dw)
-    w_new = w_H - lp.mu * _normalised(grad_l) - lp.c_H * grad_R
-    return w_new, H_hat, active, (sig, J, Hv)
+    s_rel = np.asarray(s_rel, dtype=float)
+    phi_g = np.broadcast_to(np.asarray(phi_g, dtype=float), (s_rel.shape[0],))
+    w_new, H_hat, active, grad_psi, lap_v_psi = kernels.hjb_update_rows(
+        sigma_H.exponents, sigma_H.scale, s_rel, w_H, phi_g, cost.c0_per_s, cost.v_o, cost.c1, cost.c2, cost.c3, cost.c4,
+        lp.mu, lp.c_H, lp.acc_max_m_s2, cost.V_o @ cost.V_o.T)
+    return w_new, H_hat, active, (grad_psi, lap_v_psi)
 
 
 class HJBLearner:
@@ -105,6 +83,7 @@ class HJBLearner:
         if n < 1:
             raise ValueError(f"n must be >= 1, got {n}")
         self.preset = preset
+        kernels.warm_up()                   # load the compiled kernels now, not in the first control step
         self.sigma_H = make_sigma_H(preset.learner.state_scale)
         w0 = lqr_value_weights(self.sigma_H, preset.cost) if preset.learner.w_H_init == "lqr" else np.zeros(self.sigma_H.M)
         self.w_H = np.tile(w0, (n, 1))
@@ -117,8 +96,9 @@ class HJBLearner:
         """Algorithm 3 at time t: s_rel (n, 4) own states relative to the destination,
         phi_g (n,) the interaction cost phi_G(s_{N_i}) from the states received this step."""
         s_rel = np.asarray(s_rel, dtype=float)
-        self.w_H, H_hat, active, _ = hjb_update(self.sigma_H, self.w_H, s_rel, np.asarray(phi_g, dtype=float), self.preset)
-        acc = policy_action(self.sigma_H, self.w_H, s_rel, self.preset)
+        self.w_H, H_hat, active, (grad_psi, _) = hjb_update(self.sigma_H, self.w_H, s_rel, np.asarray(phi_g, dtype=float),
+                                                            self.preset)
+        acc = saturate(optimal_action(grad_psi, self.preset.cost.c3), self.preset.learner.acc_max_m_s2)   # policy_action
         return StepInfo(acc, 1 + active.astype(np.int64), active, H_hat, np.zeros(self.n, dtype=np.int64))
 
 
@@ -161,11 +141,12 @@ class MFGLearner:
         for _ in range(lp.K):
             phi_g = mf.phi_G(s_abs)                                   # eq. 11 with m_hat^[k-1]
             mf_evals += mf.n_particles
-            self.hjb.w_H, H_hat, active, feats = hjb_update(self.sigma_H, self.w_H, s_rel, phi_g, self.preset)
+            self.hjb.w_H, H_hat, active, post = hjb_update(self.sigma_H, self.w_H, s_rel, phi_g, self.preset)
             grad_evals += 1 + active
             reg_any |= active
-            mf.fpk_update(s_abs, s_rel, self.w_H, feats)            # Algorithm 4 step 3
+            mf.fpk_update(s_abs, s_rel, post)                         # Algorithm 4 step 3
             grad_evals += 1
-        acc = policy_action(self.sigma_H, self.w_H, s_rel, self.preset)
+        # the action at the final weights (policy_action; grad psi from the last update, same s and w_H)
+        acc = saturate(optimal_action(post[0], self.preset.cost.c3), lp.acc_max_m_s2)
         mf.end_step(self.preset.dt_s)
         return StepInfo(acc, grad_evals, reg_any, H_hat, mf_evals)

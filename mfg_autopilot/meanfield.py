@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
 from .costs import cs_kernel
 from .features import MonomialFeatures, make_sigma_F
 from .model import nominal_drift, optimal_action, saturate
@@ -134,8 +135,7 @@ class MeanField:
         number of mean-field evaluations made per vehicle (n,)."""
         n, P = self.particles.shape[:2]
         rel = (self.particles - self.dest_particles[None]).reshape(n * P, 4)
-        _, J = sigma_H.value_grad(rel)
-        grad_psi = np.einsum("kmd,km->kd", J, np.repeat(w_H, P, axis=0))
+        grad_psi = sigma_H.grad_psi(rel, np.repeat(w_H, P, axis=0))
         acc = saturate(optimal_action(grad_psi, self.preset.cost.c3), self.preset.learner.acc_max_m_s2)
         self._drift = nominal_drift(rel, acc, self.preset.cost).reshape(n, P, 4)
         self._centroid_rate = self._drift.mean(axis=1)
@@ -154,23 +154,16 @@ class MeanField:
         """phi_G(s_i, m_hat) of eq. 11 by weighted particle quadrature, (n,)."""
         return np.einsum("np,np->n", self.weights(), cs_kernel(s_abs[:, None, :], self.particles, self.preset.cost))
 
-    def fpk_update(self, s_abs: np.ndarray, s_rel: np.ndarray, w_H: np.ndarray, hjb_feats) -> None:
-        """Algorithm 4 step 3: w_F <- w_F - mu * grad L_F / |grad L_F| at the own state."""
+    def fpk_update(self, s_abs: np.ndarray, s_rel: np.ndarray, hjb_post) -> None:
+        """Algorithm 4 step 3: w_F <- w_F - mu * grad L_F / |grad L_F| at the own state.
+        hjb_post: (grad psi (n, 4), psi_vxvx + psi_vyvy (n,)) at s_rel with the current w_H
+        (what learners.hjb_update returns)."""
         cost, lp = self.preset.cost, self.preset.learner
-        _, J_H, Hv_H = hjb_feats
-        grad_psi = np.einsum("nmd,nm->nd", J_H, w_H)
+        grad_psi, lap_v_psi = hjb_post
         a_star = optimal_action(grad_psi, cost.c3)                    # eq. 10: unsaturated a*
-        b = nominal_drift(s_rel, a_star, cost)
-        lap_v_psi = np.einsum("nm,nm->n", Hv_H[:, :, 0, 0] + Hv_H[:, :, 1, 1], w_H)
-        div_b = -2.0 * cost.c0_per_s - lap_v_psi / (2.0 * cost.c3)
-        sigF, JF, HvF = self.sigma_F.value_grad_hessvel(s_abs - self.centroid)
-        T_F = np.einsum("nmab,ab->nm", HvF, cost.V_o @ cost.V_o.T)
-        g_F = np.einsum("nmd,nd->nm", JF, b - self._centroid_rate) + sigF * div_b[:, None] - 0.5 * T_F
-        F = np.einsum("nm,nm->n", self.w_F, g_F)                       # eq. 10 residual (linear in w_F)
-        g = F[:, None] * g_F
-        nrm = np.linalg.norm(g, axis=1, keepdims=True)
-        self.w_F = self.w_F - lp.mu * np.where(nrm > 0, g / np.maximum(nrm, 1e-300), 0.0)
-        self.last_residual = F
+        self.w_F, self.last_residual = kernels.fpk_update_rows(
+            self.sigma_F.exponents, self.sigma_F.scale, s_abs - self.centroid, s_rel, a_star, self._centroid_rate, lap_v_psi,
+            self.w_F, cost.c0_per_s, cost.v_o, cost.c3, lp.mu, cost.V_o @ cost.V_o.T)
 
     def end_step(self, dt_s: float) -> None:
         """Propagate every particle one control period along its drift (explicit Euler)."""

@@ -26,10 +26,9 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import controller
+from . import controller, kernels
 from .backstop import apply_backstop, backstop_acc, escape_acc
 from .controller import HeardSummary, Neighbours, Observation
-from .costs import cs_kernel
 from .default_params import DefaultPreset
 from .features import make_sigma_F, make_sigma_H
 from .learners import StepInfo, hjb_update
@@ -164,6 +163,8 @@ class DefaultMFGController(_DefaultBase):
         self.w_H = np.tile(lqr_value_weights(self.sigma_H, p.tracking_cost), (self.n, 1))
         self.sigma_F = make_sigma_F(p.learner.fpk_scale)
         self.w_F = np.zeros((self.n, self.sigma_F.M))
+        self._GGt = p.cost.V_o @ p.cost.V_o.T
+        kernels.warm_up()                   # load the compiled kernels now, not in the first control step
         self.plan: MeanFieldPlan | None = None
         self._plan_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its particles), _plan_distance
         self.own_index = np.zeros(self.n, dtype=np.int64)
@@ -194,7 +195,9 @@ class DefaultMFGController(_DefaultBase):
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
         margin = self._SENSED_POS_MARGIN_M + bp.plan_mismatch_s * self._SENSED_VEL_MARGIN_M_S
-        if np.any(self._plan_distance(np.asarray(states, dtype=float)) > bp.plan_mismatch_m - margin):
+        states = np.asarray(states, dtype=float)
+        hint = np.arange(states.shape[0]) if states.shape[0] == self.plan.N else None      # vehicle j <-> particle j
+        if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
             return None
         return super().sensed_cutoff_m(states)
 
@@ -207,6 +210,21 @@ class DefaultMFGController(_DefaultBase):
             self._plan_tree = (self.plan.k, cKDTree(self.plan.states * w))
         d, _ = self._plan_tree[1].query(q * w, k=1)
         return d
+
+    def _beyond_plan(self, q: np.ndarray, threshold_m: float, hint: np.ndarray | None = None) -> np.ndarray:
+        """(m,) bool: _plan_distance(q) > threshold_m, exactly. hint (m,): a plan particle per state (its
+        own, if known): a state clearly within the threshold of it (1e-9 relative margin, far above the
+        rounding of either distance) is within it of the nearest particle too and needs no tree query."""
+        out = np.zeros(q.shape[0], dtype=bool)
+        todo = np.arange(q.shape[0])
+        if hint is not None and q.shape[0] > 0 and 0 <= hint.min() and hint.max() < self.plan.N:
+            ps = self.preset.backstop.plan_mismatch_s
+            dx = q - self.plan.states[hint]
+            d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
+            todo = np.flatnonzero(~(d2 <= (threshold_m * (1.0 - 1e-9)) ** 2))
+        if todo.size:
+            out[todo] = self._plan_distance(q[todo]) > threshold_m
+        return out
 
     def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """Sensed vehicles farther than plan_mismatch_m from every plan particle, in the state
@@ -232,61 +250,30 @@ class DefaultMFGController(_DefaultBase):
                 _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
                 inv = inv.reshape(-1)
             if np.array_equal(q[first][inv], q):
-                return (self._plan_distance(q[first]) > self.preset.backstop.plan_mismatch_m)[inv]
-        return self._plan_distance(q) > self.preset.backstop.plan_mismatch_m
+                return self._beyond_plan(q[first], self.preset.backstop.plan_mismatch_m, ids[first])[inv]
+            return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m, ids)
+        return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m)
 
     # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
     def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
-        tp = self.preset.tracking
-        x = self.plan.states
-        # (row, particle) pairs within the radius (k-d tree against k-d tree, all in C), in row order with
-        # particles ascending (the order of each row's sorted query_ball_point list), own particle left out
-        near = cKDTree(own[:, 0:2]).sparse_distance_matrix(cKDTree(x[:, 0:2]), tp.phi_g_radius_m, output_type="ndarray")
-        rows, cols = near["i"].astype(np.int64), near["j"].astype(np.int64)
-        order = np.argsort(rows * np.int64(x.shape[0]) + cols)      # distinct keys: any sort gives one order
-        rows, cols = rows[order], cols[order]
-        keep = cols != self.own_index[rows]
-        rows, cols = rows[keep], cols[keep]
-        if cols.size == 0:
-            return np.zeros(self.n), 0
-        k = cs_kernel(own[rows], x[cols], self.preset.cost)
-        if tp.learn_fpk:
-            # sigma_F is elementwise per row: evaluate it once per particle used (the used ones ascending, as
-            # np.unique gives them), then gather per pair
-            present = np.bincount(cols, minlength=x.shape[0]) > 0
-            used = np.flatnonzero(present)
-            pos = (np.cumsum(present) - 1)[cols]
-            # per pair m_hat = sum_m sig[m] w_F[m], summed sequentially over m = 0..M-1 (what einsum does with the
-            # pair axis contiguous, bit for bit on the 16 reference runs; tests/test_scaling.py checks phi_G against a
-            # per-row brute-force quadrature), one feature at a time
-            # from transposed tables: no (pairs, M_F) temporaries
-            sigT = np.ascontiguousarray(self.sigma_F.value(x[used] - centroid[None, :]).T)      # (M_F, used)
-            wT = np.ascontiguousarray(self.w_F.T)                                              # (M_F, n)
-            w = np.zeros(cols.size)
-            for m in range(sigT.shape[0]):
-                w += sigT[m][pos] * wT[m][rows]
-            w = np.maximum(w, 0.0)
-        else:
-            w = np.ones(cols.size)
-        tot = np.bincount(rows, w, self.n)
-        cnt = np.bincount(rows, minlength=self.n)
-        w = np.where(tot[rows] > 0, w / np.maximum(tot[rows], 1e-300), 1.0 / np.maximum(cnt[rows], 1))
-        return np.bincount(rows, w * k, self.n), int(cols.size)
+        """phi_G(s_i, m_hat) (n,) and the number of (row, particle) pairs: the plan particles within
+        phi_g_radius_m of each row's position (its own particle left out), each row's in ascending
+        index, weighted by max(m_hat, 0) with m_hat = w_F,i . sigma_F(x_j - centroid) (uniform without
+        the FPK model or if every weight is 0). One fused pass per row (kernels.phi_G_plan)."""
+        tp, cost = self.preset.tracking, self.preset.cost
+        return kernels.phi_G_plan(own, self.own_index, self.plan.states, centroid, self.sigma_F.exponents, self.sigma_F.scale,
+                                  self.w_F, tp.phi_g_radius_m, cost.eps_m2, cost.beta, tp.learn_fpk)
 
-    def _fpk_update(self, own: np.ndarray, e: np.ndarray, a: np.ndarray, centroid: np.ndarray, centroid_rate: np.ndarray,
+    def _fpk_update(self, own: np.ndarray, a: np.ndarray, centroid: np.ndarray, centroid_rate: np.ndarray,
                     hess_v_psi_trace: np.ndarray) -> None:
         """Algorithm 4 step 3 at the own state, FPK model in the plan's co-moving frame:
-        F = J_F (b - d s_bar/dt) + sigma_F div b - 1/2 tr(G G^T hess m_hat), linear in w_F."""
+        F = J_F (b - d s_bar/dt) + sigma_F div b - 1/2 tr(G G^T hess m_hat), linear in w_F;
+        b = A s + B (a + c0 v_o), div b = -2 c0 - (psi_vxvx + psi_vyvy) / (2 c3) (kernels.fpk_update_rows)."""
         cost, lp = self.preset.cost, self.preset.learner
-        b = nominal_drift(own, a, cost)
-        div_b = -2.0 * cost.c0_per_s - hess_v_psi_trace / (2.0 * cost.c3)
-        sigF, JF, HvF = self.sigma_F.value_grad_hessvel(own - centroid[None, :])
-        T_F = np.einsum("nmab,ab->nm", HvF, cost.V_o @ cost.V_o.T)
-        g_F = np.einsum("nmd,nd->nm", JF, b - centroid_rate[None, :]) + sigF * div_b[:, None] - 0.5 * T_F
-        F = np.einsum("nm,nm->n", self.w_F, g_F)
-        g = F[:, None] * g_F
-        nrm = np.linalg.norm(g, axis=1, keepdims=True)
-        self.w_F = self.w_F - lp.mu * np.where(nrm > 0, g / np.maximum(nrm, 1e-300), 0.0)
+        n = own.shape[0]
+        self.w_F, _ = kernels.fpk_update_rows(self.sigma_F.exponents, self.sigma_F.scale, own - centroid[None, :], own, a,
+                                              np.broadcast_to(centroid_rate, (n, 4)), hess_v_psi_trace, self.w_F,
+                                              cost.c0_per_s, cost.v_o, cost.c3, lp.mu, self._GGt)
 
     def step(self, obs: Observation) -> StepInfo:
         if self.plan is None:
@@ -308,22 +295,23 @@ class DefaultMFGController(_DefaultBase):
         H_hat = np.zeros(n)
         x = self.plan.states
         centroid = x.mean(axis=0)
+        grad_psi = None                                         # grad psi(e) with the current w_H
         if tp.learn_hjb:
+            rate = nominal_drift(x, a_plan_all, p.cost).mean(axis=0) if tp.learn_fpk else None     # d s_bar / dt
             for _ in range(p.learner.K):
                 phi_g, npairs = self._phi_G(own, centroid)
                 mf_evals += npairs // max(n, 1)
-                self.w_H, H_hat, active, feats = hjb_update(self.sigma_H, self.w_H, e, phi_g, self.track_preset)
+                # hjb_update also returns grad psi and psi_vxvx + psi_vyvy at e with the new w_H
+                self.w_H, H_hat, active, (grad_psi, hv_tr) = hjb_update(self.sigma_H, self.w_H, e, phi_g, self.track_preset)
                 grad_evals += 1 + active
                 reg |= active
                 if tp.learn_fpk:
-                    _, J, Hv = feats
-                    hv_tr = np.einsum("nm,nm->n", Hv[:, :, 0, 0] + Hv[:, :, 1, 1], self.w_H)
-                    rate = nominal_drift(x, a_plan_all, p.cost).mean(axis=0)
-                    a_star = optimal_action(np.einsum("nmd,nm->nd", J, self.w_H), p.cost.c3)
-                    self._fpk_update(own, e, a_plan + a_star, centroid, rate, hv_tr)
+                    a_star = optimal_action(grad_psi, p.cost.c3)
+                    self._fpk_update(own, a_plan + a_star, centroid, rate, hv_tr)
                     grad_evals += 1
-        _, J = self.sigma_H.value_grad(e)
-        a_fb = optimal_action(np.einsum("nmd,nm->nd", J, self.w_H), p.cost.c3)      # eq. 8: -(1/2c3) B^T grad psi
+        if grad_psi is None:
+            grad_psi = self.sigma_H.grad_psi(e, self.w_H)
+        a_fb = optimal_action(grad_psi, p.cost.c3)      # eq. 8: -(1/2c3) B^T grad psi
         if not tp.feedback:
             a_fb = np.zeros_like(a_fb)
         a = self._backstop(own, a_plan + a_fb, obs)
@@ -331,7 +319,12 @@ class DefaultMFGController(_DefaultBase):
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
 
     def weights(self) -> dict[str, np.ndarray]:
-        return {"w_H": self.w_H.copy(), "w_F": self.w_F.copy()}
+        """Read-only views (no copy: the simulator reads row 0 every step; at N = 10,000 copying both
+        banks cost ~10 MB per step). Valid snapshots: this class replaces w_H and w_F, never writes into them."""
+        out = {"w_H": self.w_H.view(), "w_F": self.w_F.view()}
+        for v in out.values():
+            v.flags.writeable = False
+        return out
 
 
 class DefaultHJBController(_DefaultBase):
