@@ -5,6 +5,7 @@ ablation table (each piece of the default controller on / off) and the fault run
     .venv/bin/python bench/default_controller_sweep.py ablation  --seeds 0,1,2 --workers 1
     .venv/bin/python bench/default_controller_sweep.py faults    --seeds 0,1,2 --workers 1
     .venv/bin/python bench/default_controller_sweep.py faults    --seeds 3,4 --workers 1 --variants "MFG default;MFG default, no backstop"
+    .venv/bin/python bench/default_controller_sweep.py ablation  --seeds 0,1,2 --workers 1 --variants "default (all pieces);no backstop"
 
 Each prints a markdown table (and writes the raw rows as JSON with --json PATH). Every run
 is `mfg-swarm sim` in process (mfg_swarm.sim.simulate) with the default 200 steps.
@@ -87,16 +88,21 @@ def must(seeds, workers):
     return rows
 
 
-def ablation(seeds, workers):
+ABLATION_REFERENCES = ("HJB_100 default (reference)", "paper preset MFG (reference)")
+
+
+def ablation(seeds, workers, variants=None):
     cases = [("paper", 25), ("crossing", 50), ("dense", 81)]
+    names = [v for v in list(ABLATIONS) + list(ABLATION_REFERENCES) if variants is None or v in variants]
     jobs = [dict(scenario=s, n=n, mode="mfg", seed=sd, variant=name, changes=ch)
-            for name, ch in ABLATIONS.items() for s, n in cases for sd in seeds]
-    jobs += [dict(scenario=s, n=n, mode="hjb", seed=sd, variant="HJB_100 default (reference)", range_m=100.0)
-             for s, n in cases for sd in seeds]
-    jobs += [dict(scenario=s, n=n, mode="mfg", seed=sd, variant="paper preset MFG (reference)", preset="paper")
-             for s, n in cases for sd in seeds]
+            for name, ch in ABLATIONS.items() if name in names for s, n in cases for sd in seeds]
+    if ABLATION_REFERENCES[0] in names:
+        jobs += [dict(scenario=s, n=n, mode="hjb", seed=sd, variant=ABLATION_REFERENCES[0], range_m=100.0)
+                 for s, n in cases for sd in seeds]
+    if ABLATION_REFERENCES[1] in names:
+        jobs += [dict(scenario=s, n=n, mode="mfg", seed=sd, variant=ABLATION_REFERENCES[1], preset="paper")
+                 for s, n in cases for sd in seeds]
     rows = _pool(jobs, workers)
-    names = list(ABLATIONS) + ["HJB_100 default (reference)", "paper preset MFG (reference)"]
     print(f"Sums / means over seeds {','.join(map(str, seeds))}. Cells: collided pairs (sum) / in slot (mean %) / "
           "min pair distance (min, m) / motion energy per UAV (mean)")
     print("| variant | " + " | ".join(f"{s} N={n}" for s, n in cases) + " |")
@@ -161,17 +167,21 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", default=None)
-    ap.add_argument("--variants", default=";".join(FAULT_VARIANTS),
-                    help="faults only: ';'-separated subset of: " + "; ".join(FAULT_VARIANTS))
+    ap.add_argument("--variants", default=None,
+                    help="';'-separated subset of the rows: faults: " + "; ".join(FAULT_VARIANTS) +
+                    "; ablation: " + "; ".join(list(ABLATIONS) + list(ABLATION_REFERENCES)))
     a = ap.parse_args(argv)
     seeds = tuple(int(s) for s in a.seeds.split(","))
+    variants = None if a.variants is None else tuple(v.strip() for v in a.variants.split(";"))
+    known = {"faults": FAULT_VARIANTS, "ablation": tuple(ABLATIONS) + ABLATION_REFERENCES, "must": ()}[a.what]
+    if variants is not None and not set(variants) <= set(known):
+        ap.error(f"--variants: unknown for {a.what}: {sorted(set(variants) - set(known))}")
     if a.what == "faults":
-        variants = tuple(v.strip() for v in a.variants.split(";"))
-        if not set(variants) <= set(FAULT_VARIANTS):
-            ap.error(f"--variants: unknown {sorted(set(variants) - set(FAULT_VARIANTS))}")
-        rows = faults(seeds, a.workers, variants)
+        rows = faults(seeds, a.workers, FAULT_VARIANTS if variants is None else variants)
+    elif a.what == "ablation":
+        rows = ablation(seeds, a.workers, variants)
     else:
-        rows = {"must": must, "ablation": ablation}[a.what](seeds, a.workers)
+        rows = must(seeds, a.workers)
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(rows, fh, indent=1, default=float)

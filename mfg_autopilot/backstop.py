@@ -86,26 +86,42 @@ def _directions(k: int) -> np.ndarray:
     return np.stack([np.cos(ang), np.sin(ang)], axis=1)
 
 
+def _segment_min(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest approach along piecewise-linear relative tracks p (m, T + 1, 2) (sample 0 = now):
+    per entry the smallest |p| over the T segments (as the collision metric checks each step's
+    segment, SPEC 6; samples alone miss up to half a sample of a fast pass) and the index of the
+    segment where it occurs. Returns (dmin (m,), segment (m,))."""
+    d0 = p[:, :-1, :]
+    dd = p[:, 1:, :] - d0
+    den = np.einsum("mtd,mtd->mt", dd, dd)
+    tau = np.clip(-np.einsum("mtd,mtd->mt", d0, dd) / np.maximum(den, 1e-300), 0.0, 1.0)
+    dist = np.linalg.norm(d0 + tau[:, :, None] * dd, axis=2)
+    k = np.argmin(dist, axis=1)
+    return dist[np.arange(dist.shape[0]), k], k
+
+
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
-               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams) -> tuple[np.ndarray, np.ndarray]:
+               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
     unplanned ones (a failed or blown vehicle), which alone can trigger it, with trigger_m[e].
-    Prediction over the horizon (sampled every escape_sample_s): the own vehicle under a
-    constant candidate acceleration a_c, p(t) = r + v t + a_c t^2 / 2; every sensed vehicle at
-    constant velocity, and a threat also as braking to a stop at a_max (a vehicle that has
-    failed into Hold brakes; the sensor gives no acceleration, so both hypotheses are kept).
-    A row is active if its nominal command a_nom brings a threat closer than its trigger.
-    Then, among the candidates (a_nom, 0, and escape_directions directions at 1/2 and 1 x
-    a_max), it takes the one minimising
+    Prediction over the horizon, sampled every escape_sample_s and checked along the straight
+    segments between samples: every sensed vehicle at constant velocity, and a threat also as
+    braking to a stop at a_max (a vehicle that has failed into Hold brakes; the sensor gives no
+    acceleration, so both hypotheses are kept; planned vehicles fly the plan and get only the
+    first). A row is active if its nominal command a_nom, held over the horizon, brings a threat
+    closer than its trigger. The own vehicle then flies a candidate a_1 for the commit time
+    (one control period: the command actually sent) and a second-phase a_2 after it, chosen
+    from {a_nom, 0, -a_1, a_1} (the next control period decides again; holding a_1 for the
+    whole horizon would price a short sidestep as a 4 m swerve into the neighbours). Among
+    a_1 in {a_nom, 0, escape_directions directions at 1/2 and 1 x a_max} it takes the one minimising
 
-        sum_e w_e max(0, 1 - dmin_e(a_c) / clear_e)^2 + escape_effort |a_c - a_nom|^2 / a_max^2,
+        min over a_2 of  sum_e w_e u_e max(0, clear_e / max(dmin_e, d_floor) - 1)^2  +  escape_effort effort(a_1 - a_nom),
 
-    w_e = 1 (threat) or escape_planned_weight: the escape keeps clear of every sensed vehicle,
-    not only of the threat - a push away from one vehicle into the path of another (the old
-    single-constraint response's failure where two formations cross) costs as much as the
-    threat itself. Rows that are not active keep a_nom. Returns (command (n, 2), active (n,)).
+    w_e = escape_threat_weight (threat) or escape_planned_weight: the escape keeps clear of every
+    sensed vehicle, not only of the threat; u_e = tau_min / max(t of the approach, tau_min)
+    (urgency). Rows that are not active keep a_nom. Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
     active = np.zeros(n, dtype=bool)
@@ -113,66 +129,87 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     if sensed_states.shape[0] == 0 or not np.any(threat):
         return a_out, active
     a_max = bp.a_max_m_s2
-    t = np.arange(1, int(round(bp.horizon_s / bp.escape_sample_s)) + 1) * bp.escape_sample_s        # (T,)
-    # other vehicles' predicted positions relative to the own *coasting* vehicle (a = 0): q(t) - r - v t, (m, T, 2)
-    d = sensed_states[:, 0:2] - own[owner, 0:2]
-    u = sensed_states[:, 2:4] - own[owner, 2:4]
-    rel = d[:, None, :] + t[None, :, None] * u[:, None, :]
-    # a threat's braking hypothesis: its own velocity w decays at a_max to 0, displacement removed from rel
-    w = sensed_states[:, 2:4]
+    t = np.arange(0, int(round(bp.horizon_s / bp.escape_sample_s)) + 1) * bp.escape_sample_s       # (T + 1,), t[0] = 0
+    # a threat's braking hypothesis: its velocity w decays at a_max to 0; displacement removed from its coasting track
+    ti = np.flatnonzero(threat)
+    w = sensed_states[ti, 2:4]
     wn = np.linalg.norm(w, axis=1)
-    t_stop = wn / a_max
-    tb = np.minimum(t[None, :], t_stop[:, None])                                                  # (m, T)
+    tb = np.minimum(t[None, :], (wn / a_max)[:, None])                                           # (m_thr, T + 1)
     back = (0.5 * a_max * tb ** 2)[:, :, None] * (w / np.maximum(wn, 1e-12)[:, None])[:, None, :]
-    rel_b = rel - back
-    # which rows does the nominal command put in conflict with a threat
-    half_t2 = 0.5 * t ** 2
-    own_nom = half_t2[None, :, None] * a_nom[owner][:, None, :]                                    # (m, T, 2)
-    dmin_nom = np.minimum(np.linalg.norm(rel - own_nom, axis=2).min(axis=1), np.linalg.norm(rel_b - own_nom, axis=2).min(axis=1))
-    hit = threat & (dmin_nom < trigger_m)
-    active[np.unique(owner[hit])] = True
+
+    def rel_tracks(ent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Other vehicles' tracks relative to the own *coasting* vehicle (a = 0), q(t) - r - v t: the
+        constant-velocity one for every entry (m, T + 1, 2), and the braking one for the threats among them."""
+        d = sensed_states[ent, 0:2] - own[owner[ent], 0:2]
+        u = sensed_states[ent, 2:4] - own[owner[ent], 2:4]
+        rel = d[:, None, :] + t[None, :, None] * u[:, None, :]
+        at = np.searchsorted(ti, ent[threat[ent]])
+        return rel, rel[threat[ent]] - back[at]
+
+    # which rows does the nominal command (held over the horizon) put in conflict with a threat
+    rel_t, rel_tb = rel_tracks(ti)
+    own_nom = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ti]][:, None, :]
+    dmin_nom = np.minimum(_segment_min(rel_t - own_nom)[0], _segment_min(rel_tb - own_nom)[0])
+    hit = dmin_nom < trigger_m[ti]
+    active[np.unique(owner[ti[hit]])] = True
     if not np.any(active):
         return a_out, active
     rows = np.flatnonzero(active)
-    sel = active[owner]
-    e_own = owner[sel]
-    rel, rel_b = rel[sel], rel_b[sel]
-    thr, clear = threat[sel], clear_m[sel]
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[rows] = np.arange(rows.size)
+    ent = np.flatnonzero(active[owner])                      # every sensed entry of the active rows
+    e_row = pos[owner[ent]]
+    rel, rel_b = rel_tracks(ent)
+    thr, clear = threat[ent], clear_m[ent]
     wgt = np.where(thr, bp.escape_threat_weight, bp.escape_planned_weight)
     # 'keep right' (as the plan's repulsion): against each vehicle the nominal command conflicts with, a
     # sideways escape to the left of the approach costs extra, so two escaping vehicles pick opposite sides
-    u_s = u[sel]
+    u_s = rel[:, 1, :] - rel[:, 0, :]
+    u_s = u_s / bp.escape_sample_s
     un_s = np.linalg.norm(u_s, axis=1)
-    left = np.stack([u_s[:, 1], -u_s[:, 0]], axis=1) / np.maximum(un_s, 1e-12)[:, None]        # -u rotated +90 deg
-    conflict = (dmin_nom[sel] < clear) & (un_s > bp.u_noise_m_s)
+    left = np.stack([u_s[:, 1], -u_s[:, 0]], axis=1) / np.maximum(un_s, 1e-12)[:, None]         # -u rotated +90 deg
+    own_nom_e = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ent]][:, None, :]
+    dn = _segment_min(rel - own_nom_e)[0]
+    dn[thr] = np.minimum(dn[thr], _segment_min(rel_b - own_nom_e[thr])[0])
+    conflict = (dn < clear) & (un_s > bp.u_noise_m_s)
+    # the own displacement under (a_1 for commit_s, then a_2): alpha(t) a_1 + beta(t) a_2
+    tc = min(commit_s, t[-1])
+    alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
+    beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
     dirs = _directions(bp.escape_directions)
-    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])            # (C-1, 2)
+    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])            # (C - 1, 2)
     # lateral departures from the own track cost escape_lateral_cost x more than along-track ones (braking keeps
     # a UAV in its own lane, which the plan has deconflicted from the other groups' lanes)
     vo = own[rows, 2:4]
     vn = np.linalg.norm(vo, axis=1)
     v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
+    a_nom_r = a_nom[rows]
     best = np.full(rows.size, np.inf)
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[rows] = np.arange(rows.size)
+    t_seg = t[1:]
     for c in range(cand_fixed.shape[0] + 1):
-        a_c = a_nom[rows] if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
-        disp = half_t2[None, :, None] * a_c[pos[e_own]][:, None, :]                                 # (m', T, 2)
-        dist = np.linalg.norm(rel - disp, axis=2)                                                  # (m', T)
-        dist = np.where(thr[:, None], np.minimum(dist, np.linalg.norm(rel_b - disp, axis=2)), dist)
-        k_min = np.argmin(dist, axis=1)
-        dmin = dist[np.arange(dist.shape[0]), k_min]
-        # urgency: a conflict predicted at t counts tau_min / max(t, tau_min) (one that comes later can still be
-        # solved at a later step; an imminent one cannot)
-        urg = bp.tau_min_s / np.maximum(t[k_min], bp.tau_min_s) if bp.escape_urgency else 1.0
-        pen = wgt * urg * np.maximum(0.0, clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0) ** 2
-        pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
-                             (half_t2[-1] * a_max), 0.0)
-        da_c = a_c - a_nom[rows]
+        a1 = a_nom_r if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
+        phase2 = (a_nom_r, np.zeros_like(a_nom_r), -a1, a1) if bp.escape_two_phase else (a1,)
+        pen_best = np.full(rows.size, np.inf)
+        for a2 in phase2:
+            disp = alpha[None, :, None] * a1[e_row][:, None, :] + beta[None, :, None] * a2[e_row][:, None, :]   # (m', T + 1, 2)
+            dmin, k = _segment_min(rel - disp)
+            if np.any(thr):
+                db, kb = _segment_min(rel_b - disp[thr])
+                worse = db < dmin[thr]
+                dmin[thr] = np.where(worse, db, dmin[thr])
+                k[thr] = np.where(worse, kb, k[thr])
+            # urgency: a conflict predicted at t counts tau_min / max(t, tau_min) (one that comes later can still be
+            # solved at a later step; an imminent one cannot)
+            urg = bp.tau_min_s / np.maximum(t_seg[k], bp.tau_min_s) if bp.escape_urgency else 1.0
+            pen = wgt * urg * np.maximum(0.0, clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0) ** 2
+            pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
+                                 (0.5 * t[-1] ** 2 * a_max), 0.0)
+            pen_best = np.minimum(pen_best, np.bincount(e_row, pen, rows.size))
+        da_c = a1 - a_nom_r
         along = np.einsum("rd,rd->r", da_c, v_hat)
         effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
-        cost = np.bincount(pos[e_own], pen, rows.size) + bp.escape_effort * effort
+        cost = pen_best + bp.escape_effort * effort
         better = cost < best
         best = np.where(better, cost, best)
-        a_out[rows[better]] = a_c[better]
+        a_out[rows[better]] = a1[better]
     return cap_norm(a_out, a_max), active

@@ -92,6 +92,7 @@ class BackstopParams:
     unplanned_target_m: float = 0.8    # used: min(this, 0.6 * smallest slot spacing)
     unplanned_share: float = 1.0
     common_mode: bool = True           # MFG: a vehicle off the plan by the own deviation (a shared gust) is not unplanned
+    common_mode_min_own_dev_m: float = 0.2   # ... checked only for rows this far off their own particle (same metric)
     # MFG: the escape manoeuvre against unplanned vehicles (backstop.escape_acc) instead of the
     # single half-plane push; it keeps clear of every sensed vehicle while avoiding the threat
     escape: bool = True
@@ -105,7 +106,10 @@ class BackstopParams:
     escape_lateral_cost: float = 1.0   # lateral (to the own velocity) deviations cost this x more than along-track
     escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
     escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
-    escape_keep_right: float = 0.1     # cost of a full-authority escape to the left of a conflicting approach
+    escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
+    escape_max_unplanned_fraction: float = 0.5   # a row sensing a larger share of off-plan vehicles gets the half-plane push
+    escape_gap: bool = False          # also escape below the planned trigger from vehicles neither response covers (measured on one case only, slow: off)
+    escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
 

@@ -117,8 +117,12 @@ class _DefaultBase:
         planned = ~unplanned              # on the plan itself (not only up to the common mode)
         if np.any(unplanned) and self._own_err is not None and bp.common_mode:
             # common mode is not a threat: a vehicle that is off the plan the way the own vehicle is (a gust
-            # blows both) is checked again against the plan shifted by the own deviation (the own row's s - s_plan)
-            idx = np.flatnonzero(unplanned)
+            # blows both) is checked again against the plan shifted by the own deviation (the own row's s - s_plan);
+            # only for rows that are off their own particle themselves (else the shift only eats the detection margin:
+            # measured, a UAV 0.1 m off its particle cleared a vehicle braking in Hold right in front of it)
+            ps = bp.plan_mismatch_s
+            own_dev = np.linalg.norm(self._own_err * np.array([1.0, 1.0, ps, ps]), axis=1)
+            idx = np.flatnonzero(unplanned & (own_dev[sn.owner] > bp.common_mode_min_own_dev_m))
             unplanned[idx] = self._unplanned(sn.states[idx] - self._own_err[sn.owner[idx]])
         if self._own_err is not None:
             # the planned vehicles' response assumes both fly the plan to within centimetres; a UAV blown
@@ -132,15 +136,29 @@ class _DefaultBase:
             # the unplanned response's trigger and clearance, fitted to the slot spacing
             sp = self._spacing_m()
             u_trig, u_clear = min(bp.unplanned_trigger_m, 0.5 * sp), min(bp.unplanned_target_m, 0.6 * sp)
-        if np.any(unplanned) and bp.escape:
-            # escape manoeuvre for the rows an unplanned vehicle threatens (backstop.escape_acc);
-            # the other rows keep the planned vehicles' half-plane response below
-            trig = np.where(unplanned, u_trig, 0.0)
-            clear = np.where(unplanned, u_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp))
-            a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, unplanned, trig, clear, bp)
-        elif np.any(unplanned):
-            bu = replace(bp, trigger_m=u_trig, target_m=u_clear, share=bp.unplanned_share)
-            da = cap_norm(da + backstop_acc(own, sn.states[unplanned], sn.owner[unplanned], bu), bp.a_max_m_s2)
+            # the escape is a backstop for a few off-plan vehicles; a row that senses mostly off-plan vehicles (the
+            # swarm has lost its plan) gets the single half-plane push instead (measured: with every UAV off the
+            # plan, escaping from all neighbours at once swerved UAVs into each other in the 0.5 m formation)
+            crowded = np.ones(self.n, dtype=bool)
+            if bp.escape:
+                n_unpl = np.bincount(sn.owner[unplanned], minlength=self.n)
+                crowded = n_unpl > bp.escape_max_unplanned_fraction * np.bincount(sn.owner, minlength=self.n)
+            threat = unplanned & ~crowded[sn.owner]
+            push = unplanned & crowded[sn.owner]
+            # the rest (neither in the planned response nor unplanned: a neighbour cleared as common mode, or any
+            # neighbour of a row off its own particle) trigger the escape only below the planned trigger
+            gap = ~planned & ~unplanned & bp.escape_gap & ~crowded[sn.owner]
+            if np.any(threat):
+                # escape manoeuvre for the rows an unplanned vehicle threatens (backstop.escape_acc);
+                # the other rows keep the planned vehicles' half-plane response below
+                trig = np.where(threat, u_trig, np.where(gap, bp.trigger_m, 0.0))
+                threat = threat | gap
+                clear = np.where(unplanned, u_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp))
+                a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
+                                        self.preset.dt_s)
+            if np.any(push):
+                bu = replace(bp, trigger_m=u_trig, target_m=u_clear, share=bp.unplanned_share)
+                da = cap_norm(da + backstop_acc(own, sn.states[push], sn.owner[push], bu), bp.a_max_m_s2)
         a, act = apply_backstop(cap_norm(a_nom, a_max), da, a_max)
         if np.any(esc):
             a, act = np.where(esc[:, None], a_esc, a), act | esc

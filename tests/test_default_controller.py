@@ -110,7 +110,7 @@ def test_escape_is_inactive_without_a_threat_in_the_way():
     # given a hovering (unplanned) vehicle 3 m to the side and a planned one 0.6 m ahead flying along
     sensed = np.array([[0.0, 3.0, 0.0, 0.0], [0.6, 0.0, 4.0, 0.0]])
     a, act = escape_acc(own, a_nom, sensed, np.array([0, 0]), np.array([True, False]), np.array([0.6, 0.0]),
-                        np.array([0.8, 0.5]), bp)
+                        np.array([0.8, 0.5]), bp, 0.5)
     # then the command is unchanged (minimal intervention: a planned vehicle alone never triggers it)
     assert not act[0]
     np.testing.assert_array_equal(a, a_nom)
@@ -125,7 +125,7 @@ def test_escape_avoids_a_hovering_vehicle_ahead_without_turning_into_a_planned_n
     nb = np.array([0.0, -1.4, 4.0, 0.0])
     a_nom = np.zeros((1, 2))
     a, act = escape_acc(own, a_nom, np.stack([failed, nb]), np.array([0, 0]), np.array([True, False]),
-                        np.array([0.6, 0.0]), np.array([0.8, 0.5]), bp)
+                        np.array([0.6, 0.0]), np.array([0.8, 0.5]), bp, 0.5)
     assert act[0] and np.linalg.norm(a[0]) <= bp.a_max_m_s2 + 1e-12
     # then the predicted closest approach to the failed vehicle opens (coasting would hit it), and it
     # does not buy that by flying into the neighbour
@@ -157,9 +157,14 @@ def test_a_gust_that_blows_everyone_alike_does_not_trigger_the_unplanned_respons
     gust = lambda x: np.tile([0.8, 0.0, 1.0, 0.0], (x.shape[0], 1))     # noqa: E731
     assert not backstop_rows(gust).any()
     # (without the common-mode check every vehicle is 'unplanned' to every other and the approaching groups'
-    # planned passes, closer than the unplanned trigger, set the backstop off)
-    no_cm = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False))
+    # planned passes, closer than the unplanned trigger, set the escape off ...
+    no_cm = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False,
+                                                                       escape_max_unplanned_fraction=1.0))
     assert backstop_rows(gust, no_cm).any()
+    # ... unless, as by default, a row that senses mostly off-plan vehicles falls back to the half-plane push,
+    # which leaves these 0.7 m passes alone)
+    no_cm_crowd = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False))
+    assert not backstop_rows(gust, no_cm_crowd).any()
     # when instead one vehicle stops (vehicle 3, group A's front row: vehicle 0 flies 1.41 m behind it in its
     # lane) while the others fly the plan, the one behind reacts
     def one_stops(x):
@@ -217,3 +222,59 @@ def test_cli_fault_options_reach_the_simulator_and_bad_ones_are_clear_errors(tmp
     assert m["preset"] == "default" and m["fail_vehicle"] == 1 and m["gust"]["duration_s"] == 5.0
     assert main(["sim", "--n", "4", "--steps", "2", "--fail-vehicle", "4", "--out", str(tmp_path / "g"), "--no-progress"]) == 2
     assert "fail_vehicle" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fail_vehicle,fail_at_s,seed", [(40, 20.0, 2), (10, 15.0, 3)])
+def test_failed_vehicle_in_the_dense_formation_is_avoided(fail_vehicle, fail_at_s, seed):
+    # the 0.5 m formation at 4 m/s; the failed vehicle brakes at the full 2 m/s^2 into Hold in front of a UAV
+    # ~1.1 m behind it, with neighbours 0.5 m to each side. Before the fix: seed 2 / vehicle 40 collided with
+    # it (the follower's own 0.1 m deviation, used by the common-mode check, cleared it as 'planned'), seed 3 /
+    # vehicle 10 too (the escape held each candidate over the whole 2 s horizon and sampled the approach only
+    # every 0.1 s: it chose a half-authority sidestep that passed 6 cm from it)
+    m = _fly("dense", 81, "mfg", seed, fail_vehicle=fail_vehicle, fail_at_s=fail_at_s)
+    assert m["failed_vehicle_collision_pairs"] == 0, m["collided_pairs_list"]
+    # (seed 2 / vehicle 40 still has one pair among the others, 0.088 m: the cascade of UAVs escaping around it)
+    assert m["collision_pairs"] <= (1 if seed == 2 else 0), m["collided_pairs_list"]
+    assert m["arrived_fraction_others"] == 1.0
+
+
+def test_common_mode_check_does_not_clear_a_braking_vehicle_for_a_uav_on_its_particle():
+    # given the dense plan in cruise, one vehicle braking (0.25 m and 1.05 m/s behind its particle, the state 0.5 s
+    # after a failure into Hold) and every other UAV on its particle with a small velocity error along the braking
+    # vehicle's deviation (0.2 m/s: normal tracking error)
+    sc = make_scenario("dense", 81)
+    S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=2).states)
+    ids = np.arange(sc.n)
+    c = make_controller("mfg", DEFAULT, sc.destination_m)
+    c.exchange_t0(S0, ids, ids, sc.destination_m)
+    k0 = 40
+    for _ in range(k0):
+        c.plan.advance()
+    x = c.plan.states
+    v_hat = x[40, 2:4] / np.linalg.norm(x[40, 2:4])
+    obs = x.copy()
+    obs[:, 2:4] -= 0.2 * v_hat
+    obs[40, 0:2] -= 0.25 * v_hat
+    obs[40, 2:4] = x[40, 2:4] - 1.05 * v_hat
+    sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c.sensor_range_m, output_type="ndarray"))
+    sn = Neighbours(sensed.states, sensed.owner, sensed.ids)
+    assert c._unplanned(sn.states, sn.ids)[sn.ids == 40].all()            # off the plan, as sensed
+    c.step(Observation(k0, k0 * DEFAULT.dt_s, obs, None, sensed))
+    # then the UAVs right behind it react (before: the shift by their own 0.2 m/s error cleared it)
+    behind = [i for i in range(sc.n) if i != 40 and 0.5 < np.dot(obs[i, :2] - obs[40, :2], -v_hat) < 1.5
+              and abs(v_hat[0] * (obs[i, 1] - obs[40, 1]) - v_hat[1] * (obs[i, 0] - obs[40, 0])) < 0.3]
+    assert behind and c.backstop_active[behind].all(), (behind, c.backstop_active[behind])
+
+
+def test_escape_checks_the_approach_between_its_samples():
+    bp = BackstopParams()
+    # given a threat passing at 8 m/s relative, 0.05 m to the side, whose closest approach falls between two
+    # 0.1 s samples (t = 0.45 s coasting, 0.48 s braking): at the samples it is >= 0.15 m away, above the trigger
+    own = np.array([[0.0, 0.0, 0.0, 0.0]])
+    threat = np.array([[3.6, 0.05, -8.0, 0.0]])
+    a, act = escape_acc(own, np.zeros((1, 2)), threat, np.array([0]), np.array([True]), np.array([0.12]),
+                        np.array([0.3]), bp, 0.5)
+    # then the escape acts (the approach is checked along each segment, as the collision metric does) and clears it
+    assert act[0]
+    assert _min_dist_const_acc(own[0], np.zeros(2), threat[0], dt_s=0.001) < 0.06
+    assert _min_dist_const_acc(own[0], a[0], threat[0], dt_s=0.001) > 0.15
