@@ -40,6 +40,7 @@ from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals
+from .neighbour_count import count_within, pos_sums_by_tree
 from .results import Trajectories, compute_metrics
 from .scenarios import Scenario
 
@@ -122,22 +123,14 @@ FULL_HEARD_MAX_STATES = 0
 """HJB_d: up to this many heard states in a step (summed over UAVs) every heard state is delivered,
 whatever the controller's heard_cutoff_m (kept for experiments: the cutoff gives the same actions)."""
 
-_SUMMARY_BLOCK = 512      # rows per block when summing heard positions without listing every pair at once
-
-
-def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts: np.ndarray) -> HeardSummary:
-    """HeardSummary over every vehicle within range_m of each one (self excluded), in row blocks:
-    memory O(block N) instead of O(heard pairs). pts (N, 2); counts (N,) from the same tree."""
-    n = pts.shape[0]
-    pos_sum = np.zeros((n, 2))
-    for b in range(0, n, _SUMMARY_BLOCK):
-        e = min(n, b + _SUMMARY_BLOCK)
-        m = cKDTree(pts[b:e]).sparse_distance_matrix(tree, range_m, output_type="ndarray")
-        i, j = m["i"], m["j"]
-        keep = i + b != j
-        i, j = i[keep], j[keep]
-        for d in range(2):
-            pos_sum[b:e, d] = np.bincount(i, pts[j, d], e - b)
+def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts: np.ndarray,
+                          pos_sum: np.ndarray | None = None) -> HeardSummary:
+    """HeardSummary over every vehicle within range_m of each one (self excluded), without listing
+    every heard pair: pts (N, 2), tree = cKDTree(pts), counts (N,) the exact heard counts; pos_sum
+    (N, 2) the sums of the heard positions if already known (neighbour_count.count_within), else
+    summed from the tree's pairs in row blocks (memory O(block N))."""
+    if pos_sum is None:
+        pos_sum = pos_sums_by_tree(tree, pts, range_m)
     dnn, _ = tree.query(pts, k=2)
     nearest = np.where(dnn[:, 1] <= range_m, dnn[:, 1], np.inf)
     return HeardSummary(np.asarray(counts, dtype=np.int64), pos_sum, nearest)
@@ -179,7 +172,7 @@ def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float) -> n
 
 
 def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.ndarray | None = None,
-         sensor_range_m: float | None = None) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
+         sensor_range_m: float | None = None, tree: cKDTree | None = None) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
     """HJB_d's exchange at one step: every UAV hears the UAVs within range_m (k-d tree).
 
     Returns (heard, summary, counts): counts (N,) is the exact number of states each UAV
@@ -188,15 +181,21 @@ def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.nda
     only the heard states within the reach and the sensed ones (``sensed_pairs_``: the backstop
     leaves heard vehicles to communication) are listed - O(N log N + those pairs) instead of
     O(pairs within d): at the destination every UAV hears everyone - with a HeardSummary over
-    all heard states when the controller needs it."""
+    all heard states when the controller needs it. ``tree``: a cKDTree of obs[:, 0:2] if the caller has one.
+
+    The counts come from :func:`~mfg_swarm.neighbour_count.count_within` (exact; a grid for large N,
+    O(N (d / s + density d s)) instead of O(N x neighbours)); at large N the summary's position sums
+    come from the same pass (summed in another order: rounding only)."""
     n = obs.shape[0]
     if n < 2:
         return Neighbours.from_pairs(obs, np.zeros((0, 2), np.int64)), None, np.zeros(n, dtype=np.int64)
     pts = obs[:, 0:2]
-    tree = cKDTree(pts)
+    tree = cKDTree(pts) if tree is None else tree
     reach = ctrl.heard_cutoff_m(step, obs) if hasattr(ctrl, "heard_cutoff_m") else None
     if reach is not None and (sensor_range_m is None or sensor_range_m < range_m):
-        counts = tree.query_ball_point(pts, range_m, return_length=True, workers=-1).astype(np.int64) - 1   # self is within range
+        want_summary = getattr(ctrl, "needs_heard_summary", True)
+        counts, pos_sum = (count_within(pts, range_m, tree, pos_sums=True) if want_summary
+                           else (count_within(pts, range_m, tree), None))
         pairs = pairs_within_reach(tree, pts, reach, range_m) if int(counts.sum()) > FULL_HEARD_MAX_STATES else None
         if pairs is not None:
             if sensed_pairs_ is not None and sensed_pairs_.size:
@@ -204,8 +203,7 @@ def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.nda
                 k = _sorted_unique(np.concatenate([pairs[:, 0] * n + pairs[:, 1], sp[:, 0] * n + sp[:, 1]]))
                 pairs = np.stack([k // n, k % n], axis=1)
             heard = Neighbours.from_pairs(obs, pairs)
-            summary = (heard_summary_by_tree(tree, pts, range_m, counts)
-                       if getattr(ctrl, "needs_heard_summary", True) else None)
+            summary = heard_summary_by_tree(tree, pts, range_m, counts, pos_sum) if want_summary else None
             return heard, summary, counts
     heard = Neighbours.from_pairs(obs, tree.query_pairs(range_m, output_type="ndarray"))
     return heard, None, heard.counts(n)
@@ -260,16 +258,18 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         w_ref[k] = ctrl.weights()["w_H"][0]
         heard = sensed = None
         heard_summary = None
-        sp = None
+        sp = tree = None
         if sensor_range_m is not None and n > 1:
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
             # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md);
             # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m reach, if any)
             reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
-            sp = None if reach is None else pairs_within_reach(cKDTree(obs[:, 0:2]), obs[:, 0:2], reach, sensor_range_m)
+            if reach is not None:
+                tree = cKDTree(obs[:, 0:2])                                     # shared with hear() below
+            sp = None if reach is None else pairs_within_reach(tree, obs[:, 0:2], reach, sensor_range_m)
             sp = sensed_pairs(obs, sensor_range_m) if sp is None else sp
         if cfg.gossips:
-            heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k, sp, sensor_range_m)
+            heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k, sp, sensor_range_m, tree)
             comm[k] += counts
         if sp is not None:
             owner, other = sensed_rows(sp)
