@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mfg_swarm.neighbour_count import count_within, pos_sums_by_tree
+from mfg_swarm.spatial import count_within, pairs_within_reach, pos_sums_by_tree
 
 
 def _tree_count(pts: np.ndarray, r: float) -> np.ndarray:
@@ -72,3 +72,48 @@ def test_count_within_rejects_bad_input():
     with pytest.raises(ValueError, match="finite"):
         count_within(np.array([[0.0, np.nan], [1.0, 1.0]]), 1.0)
     assert count_within(np.zeros((0, 2)), 1.0).shape == (0,)
+
+
+def _brute_reach_pairs(pts, base, extra, cap=np.inf, vel=None, h=None):
+    d = np.linalg.norm(pts[:, None] - pts[None, :], axis=2)
+    ok = d <= base + extra[:, None] + extra[None, :]
+    if vel is not None:
+        dd, uu = pts[None, :] - pts[:, None], vel[None, :] - vel[:, None]
+        u2 = np.sum(uu * uu, axis=2)
+        tau = np.clip(-np.sum(dd * uu, axis=2) / np.where(u2 > 0, u2, 1.0), 0.0, h) * (u2 > 0)
+        ok &= np.linalg.norm(dd + tau[..., None] * uu, axis=2) <= base
+    if np.isfinite(cap):
+        dx = pts[:, None] - pts[None, :]
+        ok &= (dx[..., 0] * dx[..., 0] + dx[..., 1] * dx[..., 1]) <= cap * cap
+    i, j = np.nonzero(np.triu(ok, k=1))
+    return np.stack([i, j], axis=1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_grid_pairs_within_reach_equal_the_tree_ones_and_the_brute_force_ones(seed):
+    # given scattered vehicles (some coincident), a few with a large reach, and velocities
+    rng = np.random.default_rng(seed)
+    n = 900
+    pts = rng.uniform(0.0, 80.0, (n, 2))
+    pts[3] = pts[4]
+    extra = np.abs(rng.standard_normal(n)) * 0.5
+    extra[rng.integers(0, n, 12)] = 6.0
+    extra[7] = extra[8]                              # equal reach: the tie is broken by the index
+    vel = rng.standard_normal((n, 2))
+    tree = cKDTree(pts)
+    # when listed by the grid kernel (forced) and by the k-d tree, with and without the velocity test
+    for reach, v in (((1.0, extra), None), ((1.0, extra, 2.0), vel)):
+        grid = pairs_within_reach(tree, pts, reach, 100.0, vel=v, min_grid_n=0)
+        kd = pairs_within_reach(tree, pts, reach, 100.0, vel=v, min_grid_n=10**9)
+        # then both are the sorted brute-force pairs
+        ref = _brute_reach_pairs(pts, 1.0, extra, vel=v, h=None if v is None else 2.0)
+        np.testing.assert_array_equal(grid, ref)
+        np.testing.assert_array_equal(kd, ref)
+    # (the closest-approach test removes pairs: the case is not trivial)
+    assert len(_brute_reach_pairs(pts, 1.0, extra, vel=vel, h=2.0)) < len(_brute_reach_pairs(pts, 1.0, extra))
+    # and clipped at a cap below the reach: the pairs within both (never None)
+    got = pairs_within_reach(None, pts, (1.0, extra), 5.0, clip=True)
+    np.testing.assert_array_equal(got, _brute_reach_pairs(pts, 1.0, extra, cap=5.0))
+    assert pairs_within_reach(tree, pts, (1.0, extra), 5.0) is None
+    with pytest.raises(ValueError, match="velocities"):
+        pairs_within_reach(tree, pts, (1.0, extra, 2.0), 100.0)
