@@ -217,10 +217,10 @@ def _compile_pairs():
     from numba import njit
 
     @njit(cache=True, nogil=True)
-    def reach_pairs(xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, base, cap2, n_all, us, vs, h, fill, out_keys):
-        """Pass 1 (fill False): the number of pairs each point owns; pass 2: their keys i * n + j (i < j),
-        written from out_keys[start of the point]. A pair is owned by its member with the larger
-        (extra, index), so the other member lies within base + 2 extra of it."""
+    def reach_pairs(xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, base, cap2, n_all, us, vs, h, out_keys):
+        """The keys i * n + j (i < j) of the pairs, written to out_keys while they fit; returns their number
+        (the caller runs it again with room for all if they did not fit). A pair is owned by its member
+        with the larger (extra, index), so the other member lies within base + 2 extra of it."""
         n = xs.shape[0]
         total = 0
         for k in range(n):
@@ -264,7 +264,7 @@ def _compile_pairs():
                             cy = dy + tau * dv
                             if not math.sqrt(cx * cx + cy * cy) <= base:
                                 continue
-                        if fill:
+                        if total < out_keys.shape[0]:
                             out_keys[total] = min(ik, im) * n_all + max(ik, im)
                         total += 1
         return total
@@ -307,9 +307,12 @@ def _pairs_within_reach_grid(pts: np.ndarray, base: float, extra: np.ndarray, ca
     if vel is not None:
         us, vs = np.ascontiguousarray(vel[order, 0], dtype=np.float64), np.ascontiguousarray(vel[order, 1], dtype=np.float64)
     args = (xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, float(base), cap2, n, us, vs, float(h) if vel is not None else -1.0)
-    total = kern(*args, False, np.zeros(0, dtype=np.int64))
-    keys = np.empty(total, dtype=np.int64)
-    kern(*args, True, keys)
+    keys = np.empty(16 * n + 1024, dtype=np.int64)
+    total = kern(*args, keys)
+    if total > keys.size:
+        keys = np.empty(total, dtype=np.int64)
+        kern(*args, keys)
+    keys = keys[:total]
     keys.sort()
     return np.stack([keys // n, keys % n], axis=1)
 
