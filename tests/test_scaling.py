@@ -68,11 +68,12 @@ def test_heard_summary_by_tree_equals_the_one_from_the_complete_list(seed):
     assert got.nearest_m[5] == 0.0
 
 
-@pytest.mark.parametrize("scenario,n,extra", [("crossing", 36, {}), ("dense", 49, {}),
-                                              ("paper", 25, {"fail_vehicle": 3, "fail_at_s": 10.0})])
-def test_hjb_delivering_only_heard_states_within_the_cutoff_flies_the_same(monkeypatch, scenario, n, extra):
-    # given HJB_100 with the default controller (its heard_cutoff_m is ~10 m < d)
-    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=4, steps=120, range_m=100.0, **extra)
+@pytest.mark.parametrize("scenario,n,range_m,extra", [("crossing", 36, 100.0, {}), ("dense", 49, 100.0, {}),
+                                                      ("paper", 25, 100.0, {"fail_vehicle": 3, "fail_at_s": 10.0}),
+                                                      ("paper", 144, 6.0, {})])     # d below the swarm's extent: local slots
+def test_hjb_delivering_only_heard_states_within_the_cutoff_flies_the_same(monkeypatch, scenario, n, range_m, extra):
+    # given HJB_d with the default controller (its heard_cutoff_m reach is well below d)
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=4, steps=120, range_m=range_m, **extra)
     # when the simulator delivers every heard state, and when it delivers the cut-off list + summary
     monkeypatch.setattr(sim, "FULL_HEARD_MAX_STATES", 10**12)
     t_full, m_full = simulate(cfg, progress=False)
