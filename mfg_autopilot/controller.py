@@ -107,7 +107,9 @@ class Controller(Protocol):
 
     # Optional (the default preset's controllers; the simulator uses them when present). A *reach* is
     # (base_m, extra_m (N,)) for a bank holding every vehicle, whose observed states (N, 4) are given:
-    # vehicle j can change row i's action only if |r_j - r_i| <= base + extra_i + extra_j.
+    # vehicle j can change row i's action only if |r_j - r_i| <= base + extra_i + extra_j; a third element
+    # horizon_s adds: and only if min over 0 <= tau <= horizon_s of |d + tau u| <= base (d = r_j - r_i, u = v_j - v_i).
+    # ignores_sensed_if_heard = True: sensed vehicles also heard this step do not change the action.
     # def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray] | None:
     #     """The reach of heard states (None: every heard state matters). The caller may then put in
     #     Observation.neighbours only the heard states within it (plus those it also sensed),

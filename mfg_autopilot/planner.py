@@ -151,7 +151,13 @@ def repulsion_from_neighbours(own: np.ndarray, nb_states: np.ndarray, owner: np.
     if nb_states.shape[0] == 0:
         return out
     rad = np.broadcast_to(np.asarray(radius_m, dtype=float), (n,))[owner]
-    f, _ = _pair_force(nb_states[:, 0:2] - own[owner, 0:2], nb_states[:, 2:4] - own[owner, 2:4], rad, rp)
+    d, u = nb_states[:, 0:2] - own[owner, 0:2], nb_states[:, 2:4] - own[owner, 2:4]
+    # exact pruning (as in repulsion_acc): rho >= |d| - horizon |u|, so a pair with |d| > R + horizon |u|
+    # (+ 1 um against rounding) has exactly zero force; its +-0.0 terms cannot change the bincount sums
+    keep = np.sqrt(np.einsum("pd,pd->p", d, d)) <= rad + rp.horizon_s * np.sqrt(np.einsum("pd,pd->p", u, u)) + 1e-6
+    if not np.all(keep):
+        d, u, rad, owner = d[keep], u[keep], rad[keep], owner[keep]
+    f, _ = _pair_force(d, u, rad, rp)
     for dim in range(2):
         out[:, dim] = -np.bincount(owner, f[:, dim], n)
     return cap_norm(out, rp.a_rep_max_m_s2)

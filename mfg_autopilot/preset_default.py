@@ -351,6 +351,10 @@ class DefaultHJBController(_DefaultBase):
 
     mode = "hjb"
     uses_t0_exchange = False
+    ignores_sensed_if_heard = True
+    """The backstop acts only on sensed vehicles that were not also heard this step (``_not_heard``): a
+    simulator whose radio range covers the sensor range may leave Observation.sensed empty (every sensed
+    vehicle is heard; the action is the same, tests/test_scaling.py)."""
 
     def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
         super().__init__(preset, destination_site_m)
@@ -373,18 +377,21 @@ class DefaultHJBController(_DefaultBase):
         """The first step derives slots and radii from everything heard (controller.HeardSummary)."""
         return not self._slots_known
 
-    def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray]:
-        """The reach (base_m, extra_m (N,)) of heard states (controller.Controller): a heard j can change
-        row i's action only if |r_j - r_i| <= base + extra_i + extra_j: the repulsion is exactly zero for
-        |d| > R + horizon |u| (planner.repulsion_acc) and |u| <= |v_i - c| + |v_j - c| (c: the median
-        velocity). The backstop's exclusion of heard vehicles needs the sensed ones too: the caller adds them."""
+    def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray, float]:
+        """The reach (base_m, extra_m (N,), horizon_s) of heard states (controller.Controller): a heard j can
+        change row i's action only if its predicted closest approach over the horizon, min over
+        0 <= tau <= horizon of |d + tau u| (d = r_j - r_i, u = v_j - v_i), is below R (planner._pair_force:
+        the push is exactly zero for rho >= R, and its rho is |d + tau u| at one tau in [0, horizon]); that
+        implies |d| <= R + horizon |u| <= base + extra_i + extra_j, as |u| <= |v_i - c| + |v_j - c| (c: the
+        median velocity). base = max R + 1 um against rounding. The backstop's exclusion of heard vehicles
+        needs the sensed ones too: the caller adds them."""
         p, rp = self.preset, self.preset.hjb_repulsion
         if not p.use_repulsion or states.shape[0] == 0:
-            return 0.0, np.zeros(states.shape[0])
+            return 0.0, np.zeros(states.shape[0]), 0.0
         v = states[:, 2:4]
         c = np.median(v, axis=0)
         rad = float(np.max(self._radius)) if self._slots_known else rp.radius_m
-        return rad + 1e-6, rp.horizon_s * np.linalg.norm(v - c[None, :], axis=1)
+        return rad + 1e-6, rp.horizon_s * np.linalg.norm(v - c[None, :], axis=1), rp.horizon_s
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """Not used: HJB_d hears its neighbours at every step instead."""

@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .spatial import GRID_MIN_N, pairs_within_reach
+
 __all__ = ["COLLISION_DISTANCE_M", "ARRIVAL_TOLERANCE_M", "segment_min_distance", "collisions", "arrivals", "motion_energy"]
 
 COLLISION_DISTANCE_M = 0.1
@@ -33,8 +35,12 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
     Returns {"collision_pairs": distinct pairs ever closer than radius,
     "collision_pair_steps": (pair, step) count, "min_pair_distance_m": the smallest
     distance between any two UAVs over all segments, "pairs": sorted list of (i, j)}.
-    Uses a k-d tree: a pair can only come within r during a step if it starts
-    within r + (max displacement of any UAV) * 2.
+    Candidates per step: a pair can come within b during a step only if it starts within
+    b + |delta_j - delta_i| <= b + e_i + e_j, delta_k the step's displacement of UAV k and
+    e_k = |delta_k - c| (c: the median displacement) - a swarm flying together has small e_k
+    (spatial.pairs_within_reach). b = radius first; if no candidate comes within the radius,
+    b = the smallest distance found (else the nearest start distance), which is at least the
+    step's smallest distance, so min_pair_distance_m is exact too.
     """
     T1, N, _ = pos_m.shape
     if N < 2:
@@ -45,15 +51,23 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
     for k in range(max(T1 - 1, 1)):
         p0 = pos_m[k]
         p1 = pos_m[k + 1] if T1 > 1 else p0
-        disp = float(np.max(np.linalg.norm(p1 - p0, axis=1)))
-        tree = cKDTree(p0)
-        nn, _ = tree.query(p0, k=2)
-        step_nn = float(np.min(nn[:, 1]))
-        search = max(radius_m, step_nn) + 2.0 * disp + 1e-9
-        cand = tree.query_pairs(search, output_type="ndarray")
+        delta = p1 - p0
+        extra = np.linalg.norm(delta - np.median(delta, axis=0)[None, :], axis=1)
+        tree = cKDTree(p0) if N < GRID_MIN_N else None       # the grid kernel of larger swarms needs none
+        cand = pairs_within_reach(tree, p0, (radius_m + 1e-9, extra), np.inf)
+        dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
+        if not (dseg.size and dseg.min() <= radius_m):
+            # the smallest distance of the step lies above the radius: widen to a distance some pair attains
+            # (the smallest found, else the nearest start distance), which bounds the smallest from above
+            if dseg.size:
+                b = float(dseg.min())
+            else:
+                nn, _ = (tree if tree is not None else cKDTree(p0)).query(p0, k=2)
+                b = float(np.min(nn[:, 1]))
+            cand = pairs_within_reach(tree, p0, (max(radius_m, b) + 1e-9, extra), np.inf)
+            dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
         if cand.size == 0:
             continue
-        dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
         dmin = min(dmin, float(dseg.min()))
         hit = dseg < radius_m
         if np.any(hit):

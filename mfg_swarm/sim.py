@@ -40,6 +40,7 @@ from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals
+from .spatial import count_within, pairs_within_reach, pos_sums_by_tree, sorted_unique
 from .results import Trajectories, compute_metrics
 from .scenarios import Scenario
 
@@ -122,64 +123,21 @@ FULL_HEARD_MAX_STATES = 0
 """HJB_d: up to this many heard states in a step (summed over UAVs) every heard state is delivered,
 whatever the controller's heard_cutoff_m (kept for experiments: the cutoff gives the same actions)."""
 
-_SUMMARY_BLOCK = 512      # rows per block when summing heard positions without listing every pair at once
-
-
-def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts: np.ndarray) -> HeardSummary:
-    """HeardSummary over every vehicle within range_m of each one (self excluded), in row blocks:
-    memory O(block N) instead of O(heard pairs). pts (N, 2); counts (N,) from the same tree."""
-    n = pts.shape[0]
-    pos_sum = np.zeros((n, 2))
-    for b in range(0, n, _SUMMARY_BLOCK):
-        e = min(n, b + _SUMMARY_BLOCK)
-        m = cKDTree(pts[b:e]).sparse_distance_matrix(tree, range_m, output_type="ndarray")
-        i, j = m["i"], m["j"]
-        keep = i + b != j
-        i, j = i[keep], j[keep]
-        for d in range(2):
-            pos_sum[b:e, d] = np.bincount(i, pts[j, d], e - b)
+def heard_summary_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float, counts: np.ndarray,
+                          pos_sum: np.ndarray | None = None) -> HeardSummary:
+    """HeardSummary over every vehicle within range_m of each one (self excluded), without listing
+    every heard pair: pts (N, 2), tree = cKDTree(pts), counts (N,) the exact heard counts; pos_sum
+    (N, 2) the sums of the heard positions if already known (spatial.count_within), else
+    summed from the tree's pairs in row blocks (memory O(block N))."""
+    if pos_sum is None:
+        pos_sum = pos_sums_by_tree(tree, pts, range_m)
     dnn, _ = tree.query(pts, k=2)
     nearest = np.where(dnn[:, 1] <= range_m, dnn[:, 1], np.inf)
     return HeardSummary(np.asarray(counts, dtype=np.int64), pos_sum, nearest)
 
 
-def _sorted_unique(k: np.ndarray) -> np.ndarray:
-    """= np.unique(k) for integer keys, by one sort (numpy 2's hash-based unique is ~5x slower on 10^6 keys)."""
-    k = np.sort(k)
-    return k[np.concatenate([[True], k[1:] != k[:-1]])] if k.size else k
-
-
-def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float) -> np.ndarray | None:
-    """Undirected pairs (p, 2), i < j, sorted, with |r_j - r_i| <= base + extra_i + extra_j for a
-    controller-declared reach = (base_m, extra_m (N,)) (or a scalar: extra = 0); None if that can
-    reach cap_m (the caller then lists everything within cap_m). Exact: all pairs within
-    base + 2 q (q the 90th percentile of extra), plus, for the few vehicles with extra > q, all
-    pairs within base + extra + max(extra) by a second tree query; then the exact per-pair test."""
-    base, extra = (reach, None) if np.isscalar(reach) else reach
-    n = pts.shape[0]
-    extra = np.zeros(n) if extra is None else np.asarray(extra, dtype=float)
-    emax = float(extra.max()) if n else 0.0
-    if not base + 2.0 * emax < cap_m:
-        return None
-    q = float(np.quantile(extra, 0.9)) if n else 0.0
-    keys = [None]
-    p0 = tree.query_pairs(base + 2.0 * q + 1e-9, output_type="ndarray").astype(np.int64)
-    keys[0] = p0[:, 0] * n + p0[:, 1]
-    fast = np.flatnonzero(extra > q)
-    if fast.size:
-        m = cKDTree(pts[fast]).sparse_distance_matrix(tree, base + 2.0 * emax + 1e-9, output_type="ndarray")
-        i, j = fast[m["i"]].astype(np.int64), m["j"].astype(np.int64)
-        ne = i != j
-        i, j = i[ne], j[ne]
-        keys.append(np.minimum(i, j) * n + np.maximum(i, j))
-    k = _sorted_unique(np.concatenate(keys)) if len(keys) > 1 else np.sort(keys[0])
-    pairs = np.stack([k // n, k % n], axis=1)
-    d = np.linalg.norm(pts[pairs[:, 1]] - pts[pairs[:, 0]], axis=1)
-    return pairs[d <= base + extra[pairs[:, 0]] + extra[pairs[:, 1]]]
-
-
 def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.ndarray | None = None,
-         sensor_range_m: float | None = None) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
+         sensor_range_m: float | None = None, tree: cKDTree | None = None) -> tuple[Neighbours, HeardSummary | None, np.ndarray]:
     """HJB_d's exchange at one step: every UAV hears the UAVs within range_m (k-d tree).
 
     Returns (heard, summary, counts): counts (N,) is the exact number of states each UAV
@@ -188,24 +146,30 @@ def hear(obs: np.ndarray, range_m: float, ctrl, step: int, sensed_pairs_: np.nda
     only the heard states within the reach and the sensed ones (``sensed_pairs_``: the backstop
     leaves heard vehicles to communication) are listed - O(N log N + those pairs) instead of
     O(pairs within d): at the destination every UAV hears everyone - with a HeardSummary over
-    all heard states when the controller needs it."""
+    all heard states when the controller needs it. ``tree``: a cKDTree of obs[:, 0:2] if the caller has one.
+
+    The counts come from :func:`~mfg_swarm.spatial.count_within` (exact; a grid for large N,
+    O(N (d / s + density d s)) instead of O(N x neighbours)); at large N the summary's position sums
+    come from the same pass (summed in another order: rounding only)."""
     n = obs.shape[0]
     if n < 2:
         return Neighbours.from_pairs(obs, np.zeros((0, 2), np.int64)), None, np.zeros(n, dtype=np.int64)
     pts = obs[:, 0:2]
-    tree = cKDTree(pts)
+    tree = cKDTree(pts) if tree is None else tree
     reach = ctrl.heard_cutoff_m(step, obs) if hasattr(ctrl, "heard_cutoff_m") else None
     if reach is not None and (sensor_range_m is None or sensor_range_m < range_m):
-        counts = tree.query_ball_point(pts, range_m, return_length=True, workers=-1).astype(np.int64) - 1   # self is within range
-        pairs = pairs_within_reach(tree, pts, reach, range_m) if int(counts.sum()) > FULL_HEARD_MAX_STATES else None
+        want_summary = getattr(ctrl, "needs_heard_summary", True)
+        counts, pos_sum = (count_within(pts, range_m, tree, pos_sums=True) if want_summary
+                           else (count_within(pts, range_m, tree), None))
+        pairs = (pairs_within_reach(tree, pts, reach, range_m, vel=obs[:, 2:4]) if int(counts.sum()) > FULL_HEARD_MAX_STATES
+                 else None)
         if pairs is not None:
             if sensed_pairs_ is not None and sensed_pairs_.size:
                 sp = np.sort(np.asarray(sensed_pairs_, dtype=np.int64), axis=1)
-                k = _sorted_unique(np.concatenate([pairs[:, 0] * n + pairs[:, 1], sp[:, 0] * n + sp[:, 1]]))
+                k = sorted_unique(np.concatenate([pairs[:, 0] * n + pairs[:, 1], sp[:, 0] * n + sp[:, 1]]))
                 pairs = np.stack([k // n, k % n], axis=1)
             heard = Neighbours.from_pairs(obs, pairs)
-            summary = (heard_summary_by_tree(tree, pts, range_m, counts)
-                       if getattr(ctrl, "needs_heard_summary", True) else None)
+            summary = heard_summary_by_tree(tree, pts, range_m, counts, pos_sum) if want_summary else None
             return heard, summary, counts
     heard = Neighbours.from_pairs(obs, tree.query_pairs(range_m, output_type="ndarray"))
     return heard, None, heard.counts(n)
@@ -248,6 +212,10 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         ctrl.exchange_t0(f32(plant.states), ids, ids, sc.destination_m)       # the t = 0 exchange
         comm[0] += n - 1
     sensor_range_m = getattr(ctrl, "sensor_range_m", None)
+    # HJB_d whose radio range covers the sensor range hears every vehicle it senses; a controller that ignores
+    # sensed vehicles it also heard (``ignores_sensed_if_heard``) then needs no sensed states at all
+    sensing_unused = (cfg.gossips and sensor_range_m is not None and sensor_range_m <= cfg.range_m
+                      and getattr(ctrl, "ignores_sensed_if_heard", False))
     w_ref = np.empty((T + 1, ctrl.weights()["w_H"].shape[1]))
     bar = _Progress(T, sys.stderr.isatty() if progress is None else progress)
 
@@ -261,12 +229,12 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         heard = sensed = None
         heard_summary = None
         sp = None
-        if sensor_range_m is not None and n > 1:
+        if sensor_range_m is not None and n > 1 and not sensing_unused:
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
             # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md);
             # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m reach, if any)
             reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
-            sp = None if reach is None else pairs_within_reach(cKDTree(obs[:, 0:2]), obs[:, 0:2], reach, sensor_range_m)
+            sp = None if reach is None else pairs_within_reach(None, obs[:, 0:2], reach, sensor_range_m, clip=True, vel=obs[:, 2:4])
             sp = sensed_pairs(obs, sensor_range_m) if sp is None else sp
         if cfg.gossips:
             heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k, sp, sensor_range_m)

@@ -132,11 +132,15 @@ def noise_stream(seed: int, vehicle_id: int) -> NoiseStream:
     return NoiseStream(seed, vehicle_id)
 
 
+def _stationary_velocity_chol(wind: WindParams) -> np.ndarray:
+    """Cholesky factor of the stationary velocity covariance of eq. 1 (with a 1e-15 jitter), (2, 2)."""
+    return np.linalg.cholesky(wind.stationary_velocity_cov() + 1e-15 * np.eye(2))
+
+
 def initial_wind_velocity(wind: WindParams, stream: NoiseStream) -> np.ndarray:
     """Initial velocity "solely determined by the wind" (Sec. V): one draw from the
     stationary law of eq. 1 with a = 0, N(v_o, V_o V_o^T / (2 c0)). Consumes 2 draws."""
-    chol = np.linalg.cholesky(wind.stationary_velocity_cov() + 1e-15 * np.eye(2))
-    return wind.v_o + chol @ stream.normals(2)
+    return wind.v_o + _stationary_velocity_chol(wind) @ stream.normals(2)
 
 
 def saturate_norm(vec: np.ndarray, limit: float) -> np.ndarray:
@@ -212,7 +216,10 @@ class SwarmPlant:
         self.streams = [noise_stream(seed, int(i)) for i in self.vehicle_ids]
         # Initial wind velocity is drawn first from each stream even when an initial
         # velocity is given, so that the stream position never depends on the caller.
-        vel0 = np.array([initial_wind_velocity(params.wind, s) for s in self.streams]).reshape(n, 2)
+        # = initial_wind_velocity(params.wind, s) per stream, with the Cholesky factor computed once
+        chol = _stationary_velocity_chol(params.wind)
+        v_o = params.wind.v_o
+        vel0 = np.array([v_o + chol @ s.normals(2) for s in self.streams]).reshape(n, 2)
         if initial_vel_m_s is not None:
             vel0 = np.asarray(initial_vel_m_s, dtype=float).reshape(n, 2)
         self.states = np.concatenate([pos, vel0], axis=1)

@@ -1,6 +1,7 @@
 """Metric bookkeeping on hand-made trajectories (SPEC section 6)."""
 
 import numpy as np
+import pytest
 
 from mfg_autopilot.params import radio_range_m
 from mfg_swarm.metrics import arrivals, collisions, motion_energy, segment_min_distance
@@ -55,3 +56,35 @@ def test_motion_energy_sums_v2_plus_a2_dt():
 def test_radio_range_formula_and_erratum_2():
     np.testing.assert_allclose(radio_range_m(1e-3), np.sqrt(0.5))
     np.testing.assert_allclose(radio_range_m(10.0), np.sqrt(0.5) * 100)
+
+
+def _brute_collisions(pos, radius=0.1):
+    from mfg_swarm.metrics import segment_min_distance as smd
+    T1, N, _ = pos.shape
+    i, j = np.triu_indices(N, 1)
+    hits, steps, dmin = set(), 0, np.inf
+    for k in range(T1 - 1):
+        d = smd(pos[k, j] - pos[k, i], pos[k + 1, j] - pos[k + 1, i])
+        dmin = min(dmin, float(d.min()))
+        h = d < radius
+        steps += int(h.sum())
+        hits.update(zip(i[h].tolist(), j[h].tolist()))
+    return len(hits), steps, dmin, sorted(hits)
+
+
+@pytest.mark.parametrize("seed,n", [(0, 60), (1, 300), (2, 2100)])
+def test_collisions_equal_the_all_pairs_check(seed, n):
+    # given random walks of a swarm drifting together (some pairs collide, most steps have none)
+    rng = np.random.default_rng(seed)
+    side = np.sqrt(n) * 1.5
+    p0 = rng.uniform(0.0, side, (n, 2))
+    steps = rng.normal(0.0, 0.15, (12, n, 2)) + np.array([0.8, -0.3])
+    steps[:, : n // 20] *= 6.0                                 # a few fast, erratic vehicles
+    pos = np.concatenate([p0[None], p0[None] + np.cumsum(steps, axis=0)], axis=0)
+    # when checked with the candidate pruning and against every pair
+    col = collisions(pos)
+    ref = _brute_collisions(pos)
+    # then the same pairs, pair-steps and smallest distance
+    assert (col["collision_pairs"], col["collision_pair_steps"]) == ref[:2]
+    assert col["min_pair_distance_m"] == ref[2]
+    assert [tuple(p) for p in col["pairs"]] == ref[3]

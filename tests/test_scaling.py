@@ -68,11 +68,12 @@ def test_heard_summary_by_tree_equals_the_one_from_the_complete_list(seed):
     assert got.nearest_m[5] == 0.0
 
 
-@pytest.mark.parametrize("scenario,n,extra", [("crossing", 36, {}), ("dense", 49, {}),
-                                              ("paper", 25, {"fail_vehicle": 3, "fail_at_s": 10.0})])
-def test_hjb_delivering_only_heard_states_within_the_cutoff_flies_the_same(monkeypatch, scenario, n, extra):
-    # given HJB_100 with the default controller (its heard_cutoff_m is ~10 m < d)
-    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=4, steps=120, range_m=100.0, **extra)
+@pytest.mark.parametrize("scenario,n,range_m,extra", [("crossing", 36, 100.0, {}), ("dense", 49, 100.0, {}),
+                                                      ("paper", 25, 100.0, {"fail_vehicle": 3, "fail_at_s": 10.0}),
+                                                      ("paper", 144, 6.0, {})])     # d below the swarm's extent: local slots
+def test_hjb_delivering_only_heard_states_within_the_cutoff_flies_the_same(monkeypatch, scenario, n, range_m, extra):
+    # given HJB_d with the default controller (its heard_cutoff_m reach is well below d)
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=4, steps=120, range_m=range_m, **extra)
     # when the simulator delivers every heard state, and when it delivers the cut-off list + summary
     monkeypatch.setattr(sim, "FULL_HEARD_MAX_STATES", 10**12)
     t_full, m_full = simulate(cfg, progress=False)
@@ -91,11 +92,12 @@ def test_heard_reach_bounds_the_repulsion_reach():
     ctrl = make_controller("hjb", DEFAULT, sc.destination_m)
     obs = np.concatenate([sc.initial_pos_m, np.zeros((9, 2))], axis=1)
     obs[4, 2:4] = [3.0, 4.0]
-    base, extra = ctrl.heard_cutoff_m(0, obs)
+    base, extra, horizon_s = ctrl.heard_cutoff_m(0, obs)
     rp = DEFAULT.hjb_repulsion
     # then every pair's reach covers the repulsion radius plus the horizon at their relative speed
     rel = np.linalg.norm(obs[:, None, 2:4] - obs[None, :, 2:4], axis=2)
     assert np.all(base + extra[:, None] + extra[None, :] >= rp.radius_m + rp.horizon_s * rel)
+    assert base >= rp.radius_m and horizon_s >= rp.horizon_s
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -132,6 +134,24 @@ def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch
     assert m_cut["backstop_activations"] == m_all["backstop_activations"]
     np.testing.assert_array_equal(t_cut.acc_m_s2, t_all.acc_m_s2)
     np.testing.assert_array_equal(t_cut.pos_m, t_all.pos_m)
+
+
+@pytest.mark.parametrize("scenario,n,range_m,extra", [("dense", 49, 12.0, {"fail_vehicle": 3, "fail_at_s": 5.0}),
+                                                      ("crossing", 36, 100.0, {})])
+def test_hjb_without_sensing_when_every_sensed_vehicle_is_heard_flies_bit_identically(monkeypatch, scenario, n, range_m, extra):
+    # given HJB_d with a radio range covering the 10 m sensor range (every sensed vehicle is also heard)
+    import mfg_autopilot.preset_default as pd
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=1, steps=120, range_m=range_m, **extra)
+    assert DEFAULT.backstop.sensor_range_m <= range_m
+    # when the simulator skips sensing (the controller ignores sensed vehicles it heard) and when it senses
+    t_skip, m_skip = simulate(cfg, progress=False)
+    monkeypatch.setattr(pd.DefaultHJBController, "ignores_sensed_if_heard", False)
+    t_sense, m_sense = simulate(cfg, progress=False)
+    # then the flights are the same bit for bit
+    np.testing.assert_array_equal(t_skip.acc_m_s2, t_sense.acc_m_s2)
+    np.testing.assert_array_equal(t_skip.pos_m, t_sense.pos_m)
+    np.testing.assert_array_equal(t_skip.comm_states, t_sense.comm_states)
+    assert m_skip["backstop_activations"] == m_sense["backstop_activations"] == 0
 
 
 def test_phi_G_equals_a_per_row_brute_force_quadrature():
