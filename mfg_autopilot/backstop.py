@@ -30,8 +30,12 @@ Shapes: own (n, 4); sensed states (m, 4) owned by bank rows owner (m,).
 
 from __future__ import annotations
 
+import functools
+from typing import NamedTuple
+
 import numpy as np
 
+from . import backstop_kernels
 from .default_params import BackstopParams
 from .planner import cap_norm
 
@@ -79,6 +83,34 @@ def apply_backstop(a_nom: np.ndarray, delta_a: np.ndarray, a_max_m_s2: float) ->
     tang = cap_norm(tang, np.sqrt(np.maximum(a_max_m_s2 ** 2 - a_n ** 2, 0.0)))
     a = np.where(active[:, None], a_n[:, None] * n_hat + tang, a_nom)
     return cap_norm(a, a_max_m_s2), active
+
+
+class _EscapeGrid(NamedTuple):
+    """The escape's constants for one (horizon, sampling, commit time, a_max, directions): built once."""
+
+    t: np.ndarray               # (T + 1,) sample times, t[0] = 0
+    half_t2: np.ndarray         # 0.5 t^2: the own displacement per unit of a command held from t = 0
+    alpha: np.ndarray           # (T + 1,) the own displacement alpha(t) a_1 + beta(t) a_2
+    beta: np.ndarray
+    t_seg: np.ndarray           # (T,) the segments' end times
+    cand_fixed: np.ndarray      # (C - 1, 2) the candidates a_1 after a_nom: 0, then the directions at a_max / 2 and a_max
+    keep_right_den: float       # 0.5 t[-1]^2 a_max
+    a_max2: float               # a_max^2
+
+
+@functools.lru_cache(maxsize=16)
+def _escape_grid(horizon_s: float, sample_s: float, commit_s: float, a_max: float, directions: int) -> _EscapeGrid:
+    t = np.arange(0, int(round(horizon_s / sample_s)) + 1) * sample_s
+    tc = min(commit_s, t[-1])
+    alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
+    beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
+    dirs = _directions(directions)
+    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])
+    g = _EscapeGrid(t, 0.5 * t ** 2, alpha, beta, t[1:].copy(), cand_fixed, float(0.5 * t[-1] ** 2 * a_max), float(a_max ** 2))
+    for v in g:
+        if isinstance(v, np.ndarray):
+            v.flags.writeable = False
+    return g
 
 
 def _directions(k: int) -> np.ndarray:
@@ -129,7 +161,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     if sensed_states.shape[0] == 0 or not np.any(threat):
         return a_out, active
     a_max = bp.a_max_m_s2
-    t = np.arange(0, int(round(bp.horizon_s / bp.escape_sample_s)) + 1) * bp.escape_sample_s       # (T + 1,), t[0] = 0
+    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, a_max, bp.escape_directions)
+    t = g.t                                                                                     # (T + 1,), t[0] = 0
     # a threat's braking hypothesis: its velocity w decays at a_max to 0; displacement removed from its coasting track
     ti = np.flatnonzero(threat)
     w = sensed_states[ti, 2:4]
@@ -137,18 +170,19 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     tb = np.minimum(t[None, :], (wn / a_max)[:, None])                                           # (m_thr, T + 1)
     back = (0.5 * a_max * tb ** 2)[:, :, None] * (w / np.maximum(wn, 1e-12)[:, None])[:, None, :]
 
-    def rel_tracks(ent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rel_tracks(ent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Other vehicles' tracks relative to the own *coasting* vehicle (a = 0), q(t) - r - v t: the
-        constant-velocity one for every entry (m, T + 1, 2), and the braking one for the threats among them."""
+        constant-velocity one for every entry (m, T + 1, 2), and the braking one for the threats among them
+        (with each threat's index in ti)."""
         d = sensed_states[ent, 0:2] - own[owner[ent], 0:2]
         u = sensed_states[ent, 2:4] - own[owner[ent], 2:4]
         rel = d[:, None, :] + t[None, :, None] * u[:, None, :]
         at = np.searchsorted(ti, ent[threat[ent]])
-        return rel, rel[threat[ent]] - back[at]
+        return rel, rel[threat[ent]] - back[at], at
 
     # which rows does the nominal command (held over the horizon) put in conflict with a threat
-    rel_t, rel_tb = rel_tracks(ti)
-    own_nom = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ti]][:, None, :]
+    rel_t, rel_tb, _ = rel_tracks(ti)
+    own_nom = g.half_t2[None, :, None] * a_nom[owner[ti]][:, None, :]
     dmin_nom = np.minimum(_segment_min(rel_t - own_nom)[0], _segment_min(rel_tb - own_nom)[0])
     hit = dmin_nom < trigger_m[ti]
     active[np.unique(owner[ti[hit]])] = True
@@ -159,7 +193,7 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     pos[rows] = np.arange(rows.size)
     ent = np.flatnonzero(active[owner])                      # every sensed entry of the active rows
     e_row = pos[owner[ent]]
-    rel, rel_b = rel_tracks(ent)
+    rel, rel_b, _ = rel_tracks(ent)
     thr, clear = threat[ent], clear_m[ent]
     wgt = np.where(thr, bp.escape_threat_weight, bp.escape_planned_weight)
     # 'keep right' (as the plan's repulsion): against each vehicle the nominal command conflicts with, a
@@ -168,48 +202,24 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     u_s = u_s / bp.escape_sample_s
     un_s = np.linalg.norm(u_s, axis=1)
     left = np.stack([u_s[:, 1], -u_s[:, 0]], axis=1) / np.maximum(un_s, 1e-12)[:, None]         # -u rotated +90 deg
-    own_nom_e = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ent]][:, None, :]
+    own_nom_e = g.half_t2[None, :, None] * a_nom[owner[ent]][:, None, :]
     dn = _segment_min(rel - own_nom_e)[0]
     dn[thr] = np.minimum(dn[thr], _segment_min(rel_b - own_nom_e[thr])[0])
     conflict = (dn < clear) & (un_s > bp.u_noise_m_s)
-    # the own displacement under (a_1 for commit_s, then a_2): alpha(t) a_1 + beta(t) a_2
-    tc = min(commit_s, t[-1])
-    alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
-    beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
-    dirs = _directions(bp.escape_directions)
-    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])            # (C - 1, 2)
     # lateral departures from the own track cost escape_lateral_cost x more than along-track ones (braking keeps
     # a UAV in its own lane, which the plan has deconflicted from the other groups' lanes)
     vo = own[rows, 2:4]
     vn = np.linalg.norm(vo, axis=1)
     v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
-    a_nom_r = a_nom[rows]
-    best = np.full(rows.size, np.inf)
-    t_seg = t[1:]
-    for c in range(cand_fixed.shape[0] + 1):
-        a1 = a_nom_r if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
-        phase2 = (a_nom_r, np.zeros_like(a_nom_r), -a1, a1) if bp.escape_two_phase else (a1,)
-        pen_best = np.full(rows.size, np.inf)
-        for a2 in phase2:
-            disp = alpha[None, :, None] * a1[e_row][:, None, :] + beta[None, :, None] * a2[e_row][:, None, :]   # (m', T + 1, 2)
-            dmin, k = _segment_min(rel - disp)
-            if np.any(thr):
-                db, kb = _segment_min(rel_b - disp[thr])
-                worse = db < dmin[thr]
-                dmin[thr] = np.where(worse, db, dmin[thr])
-                k[thr] = np.where(worse, kb, k[thr])
-            # urgency: a conflict predicted at t counts tau_min / max(t, tau_min) (one that comes later can still be
-            # solved at a later step; an imminent one cannot)
-            urg = bp.tau_min_s / np.maximum(t_seg[k], bp.tau_min_s) if bp.escape_urgency else 1.0
-            pen = wgt * urg * np.maximum(0.0, clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0) ** 2
-            pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
-                                 (0.5 * t[-1] ** 2 * a_max), 0.0)
-            pen_best = np.minimum(pen_best, np.bincount(e_row, pen, rows.size))
-        da_c = a1 - a_nom_r
-        along = np.einsum("rd,rd->r", da_c, v_hat)
-        effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
-        cost = pen_best + bp.escape_effort * effort
-        better = cost < best
-        best = np.where(better, cost, best)
-        a_out[rows[better]] = a1[better]
+    # the candidates: the own displacement under (a_1 for commit_s, then a_2) is alpha(t) a_1 + beta(t) a_2; a_1 in
+    # {a_nom, 0, escape_directions directions at 1/2 and 1 x a_max}; each a_1 is priced with its best a_2 (compiled:
+    # backstop_kernels.escape_candidates, the loop over candidates x second phases x entries x segments)
+    b_index = np.full(ent.size, -1, dtype=np.int64)
+    b_index[thr] = np.arange(int(np.count_nonzero(thr)))
+    a_best, chosen = backstop_kernels.escape_candidates(
+        rel, rel_b, b_index, e_row, wgt.astype(float), clear.astype(float), conflict, left, g.alpha, g.beta, g.t_seg,
+        g.cand_fixed, np.ascontiguousarray(a_nom[rows], dtype=float), v_hat, bool(bp.escape_two_phase),
+        bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
+        g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2)
+    a_out[rows[chosen]] = a_best[chosen]
     return cap_norm(a_out, a_max), active

@@ -1,0 +1,185 @@
+"""Compiled (numba) candidate evaluation of the escape manoeuvre (``backstop.escape_acc``).
+
+The numpy formulation loops over (1 + 2 x escape_directions) first-phase candidates x 4
+second-phase ones and makes ~20 small numpy calls each: ~2,700 calls per escape step for a
+bank of one (~25 ms CPU with 3-10 sensed vehicles). :func:`escape_candidates` does the same
+loop in one compiled call.
+
+Bit-identical to the numpy code it replaces (``tests/test_backstop_speed.py`` checks it with
+``np.array_equal`` against a verbatim copy of the old code): every quantity is computed with
+the same floating-point operations in the same order - a 2-vector dot product as
+x0 y0 + x1 y1 (what ``np.einsum`` and ``np.linalg.norm`` give for a trailing axis of 2), a
+square as x x, sums per row in entry order from 0.0 (``np.bincount``), NaN propagated as
+``np.maximum`` / ``np.minimum`` / ``np.clip`` / ``np.argmin`` do - and no fast-math (no
+contraction into fused multiply-adds, no reassociation). Single-threaded; compiled code is
+cached on disk (``cache=True``); :func:`warm_up` loads or compiles it before a control loop starts.
+
+Shapes as in ``escape_acc``: m' sensed entries of the active rows, T + 1 samples, r active rows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["escape_candidates", "warm_up"]
+
+
+@njit(cache=True)
+def _max(a, b):
+    """np.maximum (NaN propagates)."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@njit(cache=True)
+def _min(a, b):
+    """np.minimum (NaN propagates)."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+@njit(cache=True)
+def _clip01(x):
+    """np.clip(x, 0.0, 1.0) (NaN propagates)."""
+    if x != x:
+        return x
+    y = x if x > 0.0 else 0.0
+    return y if y < 1.0 else 1.0
+
+
+@njit(cache=True)
+def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
+    """backstop._segment_min for one entry e of the track p (., T + 1, 2) minus the own displacement
+    alpha(t) a_1 + beta(t) a_2: (dmin, segment)."""
+    T = p.shape[1] - 1
+    best = 0.0
+    kbest = 0
+    px0 = p[e, 0, 0] - (alpha[0] * a1x + beta[0] * a2x)
+    py0 = p[e, 0, 1] - (alpha[0] * a1y + beta[0] * a2y)
+    for s in range(T):
+        px1 = p[e, s + 1, 0] - (alpha[s + 1] * a1x + beta[s + 1] * a2x)
+        py1 = p[e, s + 1, 1] - (alpha[s + 1] * a1y + beta[s + 1] * a2y)
+        ddx = px1 - px0
+        ddy = py1 - py0
+        den = ddx * ddx + ddy * ddy
+        tau = _clip01(-(px0 * ddx + py0 * ddy) / _max(den, 1e-300))
+        qx = px0 + tau * ddx
+        qy = py0 + tau * ddy
+        dist = math.sqrt(qx * qx + qy * qy)
+        if s == 0:
+            best = dist
+            kbest = 0
+            if dist != dist:
+                return best, kbest
+        elif dist != dist:
+            return dist, s
+        elif dist < best:
+            best = dist
+            kbest = s
+        px0 = px1
+        py0 = py1
+    return best, kbest
+
+
+@njit(cache=True)
+def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed, a_nom_r,
+                      v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den, effort_w, lateral_cost,
+                      a_max2):
+    """The escape's choice of first-phase command per active row: (a_1 (r, 2), chosen (r,) bool).
+
+    rel (m', T + 1, 2): constant-velocity tracks relative to the own coasting vehicle; rel_b (m_b, T + 1, 2) the
+    braking ones, entry e's at b_index[e] (-1: not a threat); e_row (m',) the entry's active row; wgt, clear (m',);
+    conflict (m',) bool and left (m', 2): the keep-right term; alpha, beta (T + 1,): the own displacement
+    alpha a_1 + beta a_2; t_seg (T,) the segments' end times; cand_fixed (C - 1, 2): the candidates after a_nom;
+    a_nom_r, v_hat (r, 2). keep_right_den = 0.5 t[-1]^2 a_max, a_max2 = a_max^2 (as the numpy code computes them).
+    chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom)."""
+    m = rel.shape[0]
+    r = a_nom_r.shape[0]
+    T1 = rel.shape[1]
+    n_c = cand_fixed.shape[0] + 1
+    n_p = 4 if two_phase else 1
+    best = np.full(r, np.inf)
+    a_out = np.empty((r, 2))
+    chosen = np.zeros(r, dtype=np.bool_)
+    a1 = np.empty((r, 2))
+    a2 = np.empty((r, 2))
+    pen_best = np.empty(r)
+    acc = np.empty(r)
+    for c in range(n_c):
+        for i in range(r):
+            if c == 0:
+                a1[i, 0] = a_nom_r[i, 0]
+                a1[i, 1] = a_nom_r[i, 1]
+            else:
+                a1[i, 0] = cand_fixed[c - 1, 0]
+                a1[i, 1] = cand_fixed[c - 1, 1]
+            pen_best[i] = np.inf
+        for ph in range(n_p):
+            for i in range(r):
+                if n_p == 1 or ph == 3:
+                    a2[i, 0] = a1[i, 0]
+                    a2[i, 1] = a1[i, 1]
+                elif ph == 0:
+                    a2[i, 0] = a_nom_r[i, 0]
+                    a2[i, 1] = a_nom_r[i, 1]
+                elif ph == 1:
+                    a2[i, 0] = 0.0
+                    a2[i, 1] = 0.0
+                else:
+                    a2[i, 0] = -a1[i, 0]
+                    a2[i, 1] = -a1[i, 1]
+                acc[i] = 0.0
+            for e in range(m):
+                i = e_row[e]
+                dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
+                j = b_index[e]
+                if j >= 0:
+                    db, kb = _segment_min_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0],
+                                              a2[i, 1])
+                    if db < dmin:
+                        dmin = db
+                        k = kb
+                urg = tau_min_s / _max(t_seg[k], tau_min_s) if urgency else 1.0
+                x = _max(0.0, clear[e] / _max(dmin, d_floor_m) - 1.0)
+                pen = wgt[e] * urg * (x * x)
+                if conflict[e]:
+                    dx = alpha[T1 - 1] * a1[i, 0] + beta[T1 - 1] * a2[i, 0]
+                    dy = alpha[T1 - 1] * a1[i, 1] + beta[T1 - 1] * a2[i, 1]
+                    pen = pen + keep_right * _max(0.0, left[e, 0] * dx + left[e, 1] * dy) / keep_right_den
+                else:
+                    pen = pen + 0.0
+                acc[i] += pen
+            for i in range(r):
+                pen_best[i] = _min(pen_best[i], acc[i])
+        for i in range(r):
+            dax = a1[i, 0] - a_nom_r[i, 0]
+            day = a1[i, 1] - a_nom_r[i, 1]
+            along = dax * v_hat[i, 0] + day * v_hat[i, 1]
+            effort = (along * along + lateral_cost * ((dax * dax + day * day) - along * along)) / a_max2
+            cost = pen_best[i] + effort_w * effort
+            if cost < best[i]:
+                best[i] = cost
+                a_out[i, 0] = a1[i, 0]
+                a_out[i, 1] = a1[i, 1]
+                chosen[i] = True
+    return a_out, chosen
+
+
+def warm_up() -> None:
+    """Load (or, on a cold cache, compile) the kernel, so that the first escape does not pay for it."""
+    T1 = 3
+    rel = np.zeros((1, T1, 2))
+    rel[0, :, 0] = (1.0, 0.5, 0.0)
+    escape_candidates(rel, rel.copy(), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones(1), np.ones(1),
+                      np.ones(1, dtype=np.bool_), np.zeros((1, 2)), np.array([0.0, 0.005, 0.02]), np.zeros(T1),
+                      np.array([0.1, 0.2]), np.ones((2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), True, True, 0.5, 0.05,
+                      2.0, 0.04, 1.0, 1.0, 4.0)
