@@ -118,20 +118,6 @@ def _directions(k: int) -> np.ndarray:
     return np.stack([np.cos(ang), np.sin(ang)], axis=1)
 
 
-def _segment_min(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest approach along piecewise-linear relative tracks p (m, T + 1, 2) (sample 0 = now):
-    per entry the smallest |p| over the T segments (as the collision metric checks each step's
-    segment, SPEC 6; samples alone miss up to half a sample of a fast pass) and the index of the
-    segment where it occurs. Returns (dmin (m,), segment (m,))."""
-    d0 = p[:, :-1, :]
-    dd = p[:, 1:, :] - d0
-    den = np.einsum("mtd,mtd->mt", dd, dd)
-    tau = np.clip(-np.einsum("mtd,mtd->mt", d0, dd) / np.maximum(den, 1e-300), 0.0, 1.0)
-    dist = np.linalg.norm(d0 + tau[:, :, None] * dd, axis=2)
-    k = np.argmin(dist, axis=1)
-    return dist[np.arange(dist.shape[0]), k], k
-
-
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
@@ -160,66 +146,17 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     a_out = np.array(a_nom, dtype=float, copy=True)
     if sensed_states.shape[0] == 0 or not np.any(threat):
         return a_out, active
-    a_max = bp.a_max_m_s2
-    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, a_max, bp.escape_directions)
-    t = g.t                                                                                     # (T + 1,), t[0] = 0
-    # a threat's braking hypothesis: its velocity w decays at a_max to 0; displacement removed from its coasting track
-    ti = np.flatnonzero(threat)
-    w = sensed_states[ti, 2:4]
-    wn = np.linalg.norm(w, axis=1)
-    tb = np.minimum(t[None, :], (wn / a_max)[:, None])                                           # (m_thr, T + 1)
-    back = (0.5 * a_max * tb ** 2)[:, :, None] * (w / np.maximum(wn, 1e-12)[:, None])[:, None, :]
-
-    def rel_tracks(ent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Other vehicles' tracks relative to the own *coasting* vehicle (a = 0), q(t) - r - v t: the
-        constant-velocity one for every entry (m, T + 1, 2), and the braking one for the threats among them
-        (with each threat's index in ti)."""
-        d = sensed_states[ent, 0:2] - own[owner[ent], 0:2]
-        u = sensed_states[ent, 2:4] - own[owner[ent], 2:4]
-        rel = d[:, None, :] + t[None, :, None] * u[:, None, :]
-        at = np.searchsorted(ti, ent[threat[ent]])
-        return rel, rel[threat[ent]] - back[at], at
-
-    # which rows does the nominal command (held over the horizon) put in conflict with a threat
-    rel_t, rel_tb, _ = rel_tracks(ti)
-    own_nom = g.half_t2[None, :, None] * a_nom[owner[ti]][:, None, :]
-    dmin_nom = np.minimum(_segment_min(rel_t - own_nom)[0], _segment_min(rel_tb - own_nom)[0])
-    hit = dmin_nom < trigger_m[ti]
-    active[np.unique(owner[ti[hit]])] = True
-    if not np.any(active):
-        return a_out, active
-    rows = np.flatnonzero(active)
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[rows] = np.arange(rows.size)
-    ent = np.flatnonzero(active[owner])                      # every sensed entry of the active rows
-    e_row = pos[owner[ent]]
-    rel, rel_b, _ = rel_tracks(ent)
-    thr, clear = threat[ent], clear_m[ent]
-    wgt = np.where(thr, bp.escape_threat_weight, bp.escape_planned_weight)
-    # 'keep right' (as the plan's repulsion): against each vehicle the nominal command conflicts with, a
-    # sideways escape to the left of the approach costs extra, so two escaping vehicles pick opposite sides
-    u_s = rel[:, 1, :] - rel[:, 0, :]
-    u_s = u_s / bp.escape_sample_s
-    un_s = np.linalg.norm(u_s, axis=1)
-    left = np.stack([u_s[:, 1], -u_s[:, 0]], axis=1) / np.maximum(un_s, 1e-12)[:, None]         # -u rotated +90 deg
-    own_nom_e = g.half_t2[None, :, None] * a_nom[owner[ent]][:, None, :]
-    dn = _segment_min(rel - own_nom_e)[0]
-    dn[thr] = np.minimum(dn[thr], _segment_min(rel_b - own_nom_e[thr])[0])
-    conflict = (dn < clear) & (un_s > bp.u_noise_m_s)
-    # lateral departures from the own track cost escape_lateral_cost x more than along-track ones (braking keeps
-    # a UAV in its own lane, which the plan has deconflicted from the other groups' lanes)
-    vo = own[rows, 2:4]
-    vn = np.linalg.norm(vo, axis=1)
-    v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
-    # the candidates: the own displacement under (a_1 for commit_s, then a_2) is alpha(t) a_1 + beta(t) a_2; a_1 in
-    # {a_nom, 0, escape_directions directions at 1/2 and 1 x a_max}; each a_1 is priced with its best a_2 (compiled:
-    # backstop_kernels.escape_candidates, the loop over candidates x second phases x entries x segments)
-    b_index = np.full(ent.size, -1, dtype=np.int64)
-    b_index[thr] = np.arange(int(np.count_nonzero(thr)))
-    a_best, chosen = backstop_kernels.escape_candidates(
-        rel, rel_b, b_index, e_row, wgt.astype(float), clear.astype(float), conflict, left, g.alpha, g.beta, g.t_seg,
-        g.cand_fixed, np.ascontiguousarray(a_nom[rows], dtype=float), v_hat, bool(bp.escape_two_phase),
+    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions)
+    # one compiled call (backstop_kernels.escape_rows): the same operations in the same order as the numpy formulation
+    # it replaced (tests/_backstop_reference.py), ~2,700 small numpy calls per escape step for a bank of one
+    a_out, active = backstop_kernels.escape_rows(
+        np.ascontiguousarray(own, dtype=float), a_out, np.ascontiguousarray(sensed_states, dtype=float),
+        np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
+        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float),
+        g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
+        float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
         bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
         g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2)
-    a_out[rows[chosen]] = a_best[chosen]
-    return cap_norm(a_out, a_max), active
+    if not np.any(active):
+        return a_out, active
+    return cap_norm(a_out, bp.a_max_m_s2), active

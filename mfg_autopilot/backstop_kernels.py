@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["escape_candidates", "warm_up"]
+__all__ = ["escape_rows", "escape_candidates", "warm_up"]
 
 
 @njit(cache=True)
@@ -172,6 +172,190 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 a_out[i, 1] = a1[i, 1]
                 chosen[i] = True
     return a_out, chosen
+
+
+@njit(cache=True)
+def _seg_min_held(p, e, half_t2, ax, ay):
+    """backstop._segment_min for entry e of p (., T + 1, 2) minus the own displacement 0.5 t^2 a of a held command a."""
+    T = p.shape[1] - 1
+    best = 0.0
+    kbest = 0
+    px0 = p[e, 0, 0] - half_t2[0] * ax
+    py0 = p[e, 0, 1] - half_t2[0] * ay
+    for s in range(T):
+        px1 = p[e, s + 1, 0] - half_t2[s + 1] * ax
+        py1 = p[e, s + 1, 1] - half_t2[s + 1] * ay
+        ddx = px1 - px0
+        ddy = py1 - py0
+        den = ddx * ddx + ddy * ddy
+        tau = _clip01(-(px0 * ddx + py0 * ddy) / _max(den, 1e-300))
+        qx = px0 + tau * ddx
+        qy = py0 + tau * ddy
+        dist = math.sqrt(qx * qx + qy * qy)
+        if s == 0:
+            best = dist
+            if dist != dist:
+                return best, 0
+        elif dist != dist:
+            return dist, s
+        elif dist < best:
+            best = dist
+            kbest = s
+        px0 = px1
+        py0 = py1
+    return best, kbest
+
+
+@njit(cache=True)
+def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
+    """Tracks of the entries ent relative to the own coasting vehicle into rel (len(ent), T + 1, 2), d + t u, and the
+    braking ones of the threats among them into rel_b (rel minus back[b_of[entry]]), in entry order."""
+    T1 = t.shape[0]
+    nb = 0
+    for q in range(ent.shape[0]):
+        e = ent[q]
+        o = owner[e]
+        dx = sensed_states[e, 0] - own[o, 0]
+        dy = sensed_states[e, 1] - own[o, 1]
+        ux = sensed_states[e, 2] - own[o, 2]
+        uy = sensed_states[e, 3] - own[o, 3]
+        for s in range(T1):
+            rel[q, s, 0] = dx + t[s] * ux
+            rel[q, s, 1] = dy + t[s] * uy
+        j = b_of[e]
+        if j >= 0:
+            for s in range(T1):
+                rel_b[nb, s, 0] = rel[q, s, 0] - back[j, s, 0]
+                rel_b[nb, s, 1] = rel[q, s, 1] - back[j, s, 1]
+            nb += 1
+    return nb
+
+
+@njit(cache=True)
+def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
+                a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
+                keep_right, keep_right_den, effort_w, lateral_cost, a_max2):
+    """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
+    least one threat. Same operations, in the same order, as the numpy code (module docstring)."""
+    n = own.shape[0]
+    m = sensed_states.shape[0]
+    T1 = t.shape[0]
+    a_out = a_nom.copy()
+    active = np.zeros(n, dtype=np.bool_)
+    # the threats' braking hypothesis: velocity w decays at a_max; back[j] the displacement it removes
+    b_of = np.full(m, -1, dtype=np.int64)
+    n_thr = 0
+    for e in range(m):
+        if threat[e]:
+            b_of[e] = n_thr
+            n_thr += 1
+    ti = np.empty(n_thr, dtype=np.int64)
+    back = np.empty((n_thr, T1, 2))
+    for e in range(m):
+        j = b_of[e]
+        if j < 0:
+            continue
+        ti[j] = e
+        wx = sensed_states[e, 2]
+        wy = sensed_states[e, 3]
+        wn = math.sqrt(wx * wx + wy * wy)
+        hx = wx / _max(wn, 1e-12)
+        hy = wy / _max(wn, 1e-12)
+        ts = wn / a_max
+        for s in range(T1):
+            tb = _min(t[s], ts)
+            c = 0.5 * a_max * (tb * tb)
+            back[j, s, 0] = c * hx
+            back[j, s, 1] = c * hy
+    # rows whose nominal command (held) brings a threat below its trigger
+    rel_t = np.empty((n_thr, T1, 2))
+    rel_tb = np.empty((n_thr, T1, 2))
+    _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb)
+    for j in range(n_thr):
+        o = owner[ti[j]]
+        d1, _ = _seg_min_held(rel_t, j, half_t2, a_nom[o, 0], a_nom[o, 1])
+        d2, _ = _seg_min_held(rel_tb, j, half_t2, a_nom[o, 0], a_nom[o, 1])
+        if _min(d1, d2) < trigger_m[ti[j]]:
+            active[o] = True
+    r = 0
+    pos = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        if active[i]:
+            pos[i] = r
+            r += 1
+    if r == 0:
+        return a_out, active
+    rows = np.empty(r, dtype=np.int64)
+    for i in range(n):
+        if active[i]:
+            rows[pos[i]] = i
+    n_ent = 0
+    n_bt = 0
+    for e in range(m):
+        if active[owner[e]]:
+            n_ent += 1
+            if threat[e]:
+                n_bt += 1
+    ent = np.empty(n_ent, dtype=np.int64)
+    q = 0
+    for e in range(m):
+        if active[owner[e]]:
+            ent[q] = e
+            q += 1
+    rel = np.empty((n_ent, T1, 2))
+    rel_b = np.empty((n_bt, T1, 2))
+    _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b)
+    e_row = np.empty(n_ent, dtype=np.int64)
+    b_index = np.full(n_ent, -1, dtype=np.int64)
+    wgt = np.empty(n_ent)
+    clear = np.empty(n_ent)
+    conflict = np.zeros(n_ent, dtype=np.bool_)
+    left = np.empty((n_ent, 2))
+    nb = 0
+    for q in range(n_ent):
+        e = ent[q]
+        o = owner[e]
+        e_row[q] = pos[o]
+        clear[q] = clear_m[e]
+        wgt[q] = threat_weight if threat[e] else planned_weight
+        # 'keep right': the approach's velocity from the first segment, -u rotated +90 deg
+        usx = rel[q, 1, 0] - rel[q, 0, 0]
+        usy = rel[q, 1, 1] - rel[q, 0, 1]
+        usx = usx / sample_s
+        usy = usy / sample_s
+        un = math.sqrt(usx * usx + usy * usy)
+        left[q, 0] = usy / _max(un, 1e-12)
+        left[q, 1] = -usx / _max(un, 1e-12)
+        dn, _ = _seg_min_held(rel, q, half_t2, a_nom[o, 0], a_nom[o, 1])
+        if threat[e]:
+            b_index[q] = nb
+            db, _ = _seg_min_held(rel_b, nb, half_t2, a_nom[o, 0], a_nom[o, 1])
+            dn = _min(dn, db)
+            nb += 1
+        conflict[q] = (dn < clear[q]) and (un > u_noise_m_s)
+    a_nom_r = np.empty((r, 2))
+    v_hat = np.empty((r, 2))
+    for k in range(r):
+        i = rows[k]
+        a_nom_r[k, 0] = a_nom[i, 0]
+        a_nom_r[k, 1] = a_nom[i, 1]
+        vx = own[i, 2]
+        vy = own[i, 3]
+        vn = math.sqrt(vx * vx + vy * vy)
+        if vn > u_noise_m_s:
+            v_hat[k, 0] = vx / _max(vn, 1e-12)
+            v_hat[k, 1] = vy / _max(vn, 1e-12)
+        else:
+            v_hat[k, 0] = 0.0
+            v_hat[k, 1] = 0.0
+    a_best, chosen = escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed,
+                                       a_nom_r, v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den,
+                                       effort_w, lateral_cost, a_max2)
+    for k in range(r):
+        if chosen[k]:
+            a_out[rows[k], 0] = a_best[k, 0]
+            a_out[rows[k], 1] = a_best[k, 1]
+    return a_out, active
 
 
 def warm_up() -> None:
