@@ -113,6 +113,16 @@ def _escape_grid(horizon_s: float, sample_s: float, commit_s: float, a_max: floa
     return g
 
 
+@functools.lru_cache(maxsize=16)
+def _escape_args(bp: BackstopParams, commit_s: float) -> tuple:
+    """backstop_kernels.escape_rows' arguments after the sensed data: the grid and the parameters, once per (bp, commit_s)."""
+    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions)
+    return (g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
+            float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
+            bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
+            g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2)
+
+
 def _directions(k: int) -> np.ndarray:
     ang = 2.0 * np.pi * np.arange(k) / k
     return np.stack([np.cos(ang), np.sin(ang)], axis=1)
@@ -146,17 +156,12 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     a_out = np.array(a_nom, dtype=float, copy=True)
     if sensed_states.shape[0] == 0 or not np.any(threat):
         return a_out, active
-    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions)
     # one compiled call (backstop_kernels.escape_rows): the same operations in the same order as the numpy formulation
     # it replaced (tests/_backstop_reference.py), ~2,700 small numpy calls per escape step for a bank of one
     a_out, active = backstop_kernels.escape_rows(
         np.ascontiguousarray(own, dtype=float), a_out, np.ascontiguousarray(sensed_states, dtype=float),
         np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
-        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float),
-        g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
-        float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
-        bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
-        g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2)
+        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

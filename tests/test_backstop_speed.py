@@ -138,3 +138,25 @@ def test_controller_backstop_is_bit_identical_on_perturbed_plans(scenario, seed)
             assert np.array_equal(c._unplanned(sn.states, sn.ids), r._unplanned(sn.states, sn.ids))
             counts["act"] += int(act_ref.sum())
         assert counts["act"] > 0
+
+
+def test_unplanned_decides_states_at_the_mismatch_threshold_as_before():
+    # given sensed states exactly at, just inside and just outside plan_mismatch_m of a plan particle (where the
+    # brute-force distance defers to the k-d tree), and far ones, with and without ids
+    c = _controller("dense", 81, np.array([40]), 0)
+    r = ref.Reference(c)
+    rng = np.random.default_rng(7)
+    thr = DEFAULT.backstop.plan_mismatch_m
+    for k in range(0, 60, 5):
+        while c.plan.k < k:
+            c.plan.advance()
+        x = c.plan.states
+        j = rng.choice(x.shape[0], 12, replace=False)
+        ang = rng.uniform(0, 2 * np.pi, 12)
+        rad = thr * rng.choice([1.0, 1.0 - 1e-12, 1.0 + 1e-12, 1.0 - 1e-8, 1.0 + 1e-8, 3.0], 12)
+        q = x[j].copy()
+        q[:, 0] += rad * np.cos(ang)
+        q[:, 1] += rad * np.sin(ang)
+        for ids in (None, j.astype(np.int64)):
+            assert np.array_equal(c._unplanned(q, ids), r._unplanned(q, ids))
+        assert np.array_equal(c._beyond_plan(q, thr), r._beyond_plan(q, thr))
