@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["escape_rows", "escape_candidates", "warm_up"]
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "warm_up"]
 
 
 @njit(cache=True)
@@ -358,8 +358,92 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     return a_out, active
 
 
+@njit(cache=True)
+def _cap_row(ax, ay, limit):
+    """planner.cap_norm for one row: a * min(1, limit / max(|a|, 1e-300))."""
+    f = _min(1.0, limit / _max(math.sqrt(ax * ax + ay * ay), 1e-300))
+    return ax * f, ay * f
+
+
+@njit(cache=True)
+def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m, target_m, share, tau_min_s, a_max):
+    """backstop.backstop_acc (its docstring): the correction delta_a (n, 2). u_noise2 = u_noise_m_s ** 2 as Python computes it."""
+    out = np.zeros((n, 2))
+    m = sensed_states.shape[0]
+    any_act = False
+    for p in range(m):
+        o = owner[p]
+        dx = sensed_states[p, 0] - own[o, 0]
+        dy = sensed_states[p, 1] - own[o, 1]
+        ux = sensed_states[p, 2] - own[o, 2]
+        uy = sensed_states[p, 3] - own[o, 3]
+        uu = ux * ux + uy * uy
+        tau = -(dx * ux + dy * uy) / _max(uu, 1e-12)
+        if tau == tau:                                   # np.clip(tau, 0, horizon_s)
+            tau = tau if tau > 0.0 else 0.0
+            tau = tau if tau < horizon_s else horizon_s
+        if not uu >= u_noise2:
+            tau = 0.0
+        cx = dx + tau * ux
+        cy = dy + tau * uy
+        rho = math.sqrt(cx * cx + cy * cy)
+        act = rho < trigger_m
+        any_act = any_act or act
+        un = math.sqrt(uu)
+        if rho > 1e-6:
+            nx = cx / _max(rho, 1e-12)
+            ny = cy / _max(rho, 1e-12)
+        elif un > 1e-9:
+            nx = -uy / _max(un, 1e-12)
+            ny = ux / _max(un, 1e-12)
+        else:
+            nx = 1.0
+            ny = 0.0
+        mag = 0.0
+        if act:
+            tm = _max(tau, tau_min_s)
+            mag = share * 2.0 * (target_m - rho) / (tm * tm)
+        out[o, 0] += -mag * nx
+        out[o, 1] += -mag * ny
+    if not any_act:
+        return np.zeros((n, 2))
+    for i in range(n):
+        out[i, 0], out[i, 1] = _cap_row(out[i, 0], out[i, 1], a_max)
+    return out
+
+
+@njit(cache=True)
+def half_plane_filter(a_nom, delta_a, a_max, a_max2):
+    """backstop.apply_backstop (its docstring): (command (n, 2), active (n,)). a_max2 = a_max ** 2 as Python computes it."""
+    n = a_nom.shape[0]
+    a = np.empty((n, 2))
+    active = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        dx = delta_a[i, 0]
+        dy = delta_a[i, 1]
+        a_req = math.sqrt(dx * dx + dy * dy)
+        ax = a_nom[i, 0]
+        ay = a_nom[i, 1]
+        if a_req > 0:
+            active[i] = True
+            nx = dx / _max(a_req, 1e-300)
+            ny = dy / _max(a_req, 1e-300)
+            a_n_nom = ax * nx + ay * ny
+            a_n = _min(_max(a_req, a_n_nom), a_max)
+            tx = ax - a_n_nom * nx
+            ty = ay - a_n_nom * ny
+            tx, ty = _cap_row(tx, ty, math.sqrt(_max(a_max2 - a_n * a_n, 0.0)))
+            ax = a_n * nx + tx
+            ay = a_n * ny + ty
+        a[i, 0], a[i, 1] = _cap_row(ax, ay, a_max)
+    return a, active
+
+
 def warm_up() -> None:
-    """Load (or, on a cold cache, compile) the kernel, so that the first escape does not pay for it."""
+    """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it."""
+    s1 = np.array([[0.0, 0.0, 1.0, 0.0]])
+    da = half_plane_acc(np.zeros((1, 4)), s1 + 0.05, np.zeros(1, dtype=np.int64), 1, 2.0, 0.25, 0.15, 0.15, 0.5, 0.5, 2.0)
+    half_plane_filter(np.zeros((1, 2)), da, 2.0, 4.0)
     T1 = 3
     rel = np.zeros((1, T1, 2))
     rel[0, :, 0] = (1.0, 0.5, 0.0)

@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import _backstop_reference as ref
-from mfg_autopilot import backstop
+from mfg_autopilot import backstop, backstop_kernels
 from mfg_autopilot.controller import Neighbours, Observation, make_controller
 from mfg_autopilot.default_params import BackstopParams
 from mfg_autopilot.params import preset_by_name
@@ -99,10 +99,19 @@ def _controller(scenario: str, n: int, rows: np.ndarray, seed: int):
 
 
 @pytest.mark.parametrize("scenario,seed", [("dense", 0), ("dense", 1), ("crossing", 2)])
-def test_controller_backstop_is_bit_identical_on_perturbed_plans(scenario, seed):
+def test_controller_backstop_is_bit_identical_on_perturbed_plans(scenario, seed, monkeypatch):
     # given banks of one and of several rows flying the plan, and observations in which some sensed vehicles are
     # off the plan (braking, blown sideways, shifted with the own deviation), some close to the own vehicle
     rng = np.random.default_rng(seed)
+    escaped = []
+    escape_rows = backstop_kernels.escape_rows
+
+    def counted(*args):
+        out = escape_rows(*args)
+        escaped.append(int(out[1].sum()))
+        return out
+
+    monkeypatch.setattr(backstop_kernels, "escape_rows", counted)
     n_veh = 81 if scenario == "dense" else 40
     for rows in (np.array([40 % n_veh]), np.array([3, 17, 40 % n_veh]), np.arange(n_veh)):
         c = _controller(scenario, n_veh, rows, seed)
@@ -138,6 +147,8 @@ def test_controller_backstop_is_bit_identical_on_perturbed_plans(scenario, seed)
             assert np.array_equal(c._unplanned(sn.states, sn.ids), r._unplanned(sn.states, sn.ids))
             counts["act"] += int(act_ref.sum())
         assert counts["act"] > 0
+    # then the escape acted too (not only the half-plane response)
+    assert sum(escaped) > 0
 
 
 def test_unplanned_decides_states_at_the_mismatch_threshold_as_before():
