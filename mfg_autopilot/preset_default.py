@@ -26,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import controller, kernels
+from . import backstop_kernels, controller, kernels
 from .backstop import apply_backstop, backstop_acc, escape_acc
 from .controller import HeardSummary, Neighbours, Observation
 from .default_params import DefaultPreset
@@ -58,6 +58,8 @@ class _DefaultBase:
         self.backstop_active = np.zeros(self.n, dtype=bool)
         self.backstop_steps = np.zeros(self.n, dtype=np.int64)
         self._own_err: np.ndarray | None = None     # MFG: each row's deviation from its plan particle, s - s_plan (n, 4)
+        if bp.enabled:
+            backstop_kernels.warm_up()      # load the compiled backstop now, not in the first control step (both modes)
 
     @property
     def n(self) -> int:
