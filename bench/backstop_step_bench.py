@@ -1,9 +1,9 @@
 """CPU per control step of a bank of ONE default-MFG controller with sensed traffic, by backstop case.
 
-    .venv/bin/python bench/backstop_step_bench.py [--steps 300] [--seed 0]
+    .venv/bin/python bench/backstop_step_bench.py [--steps 300] [--seed 0] [--scenario dense --n 81 --row 40]
 
 Dense scenario (N = 81, 0.5 m slots, in cruise), the bank's row is vehicle 40; each step senses the
-3-10 nearest other vehicles (on their plan particles, +-1 cm):
+3-10 nearest other vehicles (at most N - 1; on their plan particles, +-1 cm):
   idle     nothing closer than the trigger: the backstop computes and does nothing
   planned  one planned neighbour 0.1 m off the own position: backstop_acc acts (half-plane push)
   escape   one of them off-plan (1 m ahead, closing at 2 m/s): escape_acc acts
@@ -23,16 +23,16 @@ from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import as_f32, plant_params_for
 from mock_vehicle.plant import SwarmPlant
 
-ROW = 40
 K0 = 30
 
 
 def _obs(c, k: int, case: str, rng: np.random.Generator) -> Observation:
     x = c.plan.states
+    ROW = int(c.own_index[0])
     own = x[ROW:ROW + 1].copy()
     own[:, 0:2] += rng.uniform(-0.02, 0.02, 2)
     own[:, 2:4] += rng.uniform(-0.05, 0.05, 2)
-    m = int(rng.integers(3, 11))
+    m = min(int(rng.integers(3, 11)), x.shape[0] - 1)
     d = np.linalg.norm(x[:, 0:2] - x[ROW, 0:2], axis=1)
     d[ROW] = np.inf
     ids = np.argsort(d, kind="stable")[:m]
@@ -49,9 +49,10 @@ def _obs(c, k: int, case: str, rng: np.random.Generator) -> Observation:
     return Observation(k, k * c.preset.dt_s, own, None, Neighbours(s, np.zeros(m, dtype=np.int64), ids.astype(np.int64)))
 
 
-def run(case: str, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+def run(case: str, steps: int, seed: int, scenario: str = "dense", n: int = 81, row: int = 40) -> tuple[np.ndarray, np.ndarray, float]:
     preset = preset_by_name("default")
-    sc = make_scenario("dense", 81)
+    sc = make_scenario(scenario, n)
+    ROW = row
     S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=seed).states)
     ids = np.arange(sc.n)
     c = make_controller("mfg", preset, sc.destination_m[ROW:ROW + 1])
@@ -83,10 +84,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scenario", default="dense")
+    ap.add_argument("--n", type=int, default=81)
+    ap.add_argument("--row", type=int, default=40)
     args = ap.parse_args()
+    where = (args.scenario, args.n, args.row)
     for case in ("idle", "planned", "escape"):
-        run(case, 20, args.seed + 1)                      # warm caches
-        ts, tb, frac = run(case, args.steps, args.seed)
+        run(case, 20, args.seed + 1, *where)                      # warm caches
+        ts, tb, frac = run(case, args.steps, args.seed, *where)
         print(f"{case:8s} active {frac:5.0%}  step p50 {np.percentile(ts, 50):6.3f} p99 {np.percentile(ts, 99):6.3f} ms"
               f"   _backstop p50 {np.percentile(tb, 50):6.3f} p99 {np.percentile(tb, 99):6.3f} ms")
 
