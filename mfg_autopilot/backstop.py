@@ -30,8 +30,12 @@ Shapes: own (n, 4); sensed states (m, 4) owned by bank rows owner (m,).
 
 from __future__ import annotations
 
+import functools
+from typing import NamedTuple
+
 import numpy as np
 
+from . import backstop_kernels
 from .default_params import BackstopParams
 from .planner import cap_norm
 
@@ -39,29 +43,16 @@ __all__ = ["backstop_acc", "apply_backstop", "escape_acc"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams) -> np.ndarray:
-    """The backstop's correction delta_a per bank row, (n, 2) (zero rows where inactive)."""
+    """The backstop's correction delta_a per bank row, (n, 2) (zero rows where inactive): the module docstring's
+    delta_a summed per row and capped at a_max (compiled: backstop_kernels.half_plane_acc, one call instead of ~20
+    small numpy ones; the same operations in the same order as the numpy formulation, tests/_backstop_reference.py)."""
     n = own.shape[0]
-    out = np.zeros((n, 2))
     if sensed_states.shape[0] == 0:
-        return out
-    d = sensed_states[:, 0:2] - own[owner, 0:2]
-    u = sensed_states[:, 2:4] - own[owner, 2:4]
-    uu = np.einsum("pd,pd->p", u, u)
-    tau = np.clip(-np.einsum("pd,pd->p", d, u) / np.maximum(uu, 1e-12), 0.0, bp.horizon_s)
-    tau = np.where(uu >= bp.u_noise_m_s ** 2, tau, 0.0)          # wind jitter is not a trend
-    c = d + tau[:, None] * u
-    rho = np.linalg.norm(c, axis=1)
-    act = rho < bp.trigger_m
-    if not np.any(act):
-        return out
-    un = np.sqrt(uu)
-    perp = np.stack([-u[:, 1], u[:, 0]], axis=1) / np.maximum(un, 1e-12)[:, None]
-    n_hat = np.where((rho > 1e-6)[:, None], c / np.maximum(rho, 1e-12)[:, None], np.where((un > 1e-9)[:, None], perp, np.array([[1.0, 0.0]])))
-    mag = np.where(act, bp.share * 2.0 * (bp.target_m - rho) / np.maximum(tau, bp.tau_min_s) ** 2, 0.0)
-    f = -mag[:, None] * n_hat
-    for dim in range(2):
-        out[:, dim] = np.bincount(owner, f[:, dim], n)
-    return cap_norm(out, bp.a_max_m_s2)
+        return np.zeros((n, 2))
+    return backstop_kernels.half_plane_acc(np.ascontiguousarray(own, dtype=float), np.ascontiguousarray(sensed_states, dtype=float),
+                                           np.ascontiguousarray(owner, dtype=np.int64), n, float(bp.horizon_s),
+                                           float(bp.u_noise_m_s ** 2), float(bp.trigger_m), float(bp.target_m), float(bp.share),
+                                           float(bp.tau_min_s), float(bp.a_max_m_s2))
 
 
 def apply_backstop(a_nom: np.ndarray, delta_a: np.ndarray, a_max_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
@@ -69,35 +60,53 @@ def apply_backstop(a_nom: np.ndarray, delta_a: np.ndarray, a_max_m_s2: float) ->
     with n = delta_a / |delta_a| and a_req = |delta_a|, the command is the point nearest to
     a_nom with n.a >= a_req - the nominal keeps everything that does not push against the
     backstop, and is unchanged if it already satisfies it. Under the limit a_max the normal
-    component is kept and the tangential one shortened. Returns (command (n, 2), active (n,))."""
-    a_req = np.linalg.norm(delta_a, axis=1)
-    active = a_req > 0
-    n_hat = delta_a / np.maximum(a_req, 1e-300)[:, None]
-    a_n_nom = np.einsum("nd,nd->n", a_nom, n_hat)
-    a_n = np.minimum(np.maximum(a_req, a_n_nom), a_max_m_s2)
-    tang = a_nom - a_n_nom[:, None] * n_hat
-    tang = cap_norm(tang, np.sqrt(np.maximum(a_max_m_s2 ** 2 - a_n ** 2, 0.0)))
-    a = np.where(active[:, None], a_n[:, None] * n_hat + tang, a_nom)
-    return cap_norm(a, a_max_m_s2), active
+    component is kept and the tangential one shortened; the result is capped at a_max.
+    Returns (command (n, 2), active (n,)). Compiled: backstop_kernels.half_plane_filter."""
+    return backstop_kernels.half_plane_filter(np.ascontiguousarray(a_nom, dtype=float), np.ascontiguousarray(delta_a, dtype=float),
+                                              float(a_max_m_s2), float(a_max_m_s2 ** 2))
+
+
+class _EscapeGrid(NamedTuple):
+    """The escape's constants for one (horizon, sampling, commit time, a_max, directions): built once."""
+
+    t: np.ndarray               # (T + 1,) sample times, t[0] = 0
+    half_t2: np.ndarray         # 0.5 t^2: the own displacement per unit of a command held from t = 0
+    alpha: np.ndarray           # (T + 1,) the own displacement alpha(t) a_1 + beta(t) a_2
+    beta: np.ndarray
+    t_seg: np.ndarray           # (T,) the segments' end times
+    cand_fixed: np.ndarray      # (C - 1, 2) the candidates a_1 after a_nom: 0, then the directions at a_max / 2 and a_max
+    keep_right_den: float       # 0.5 t[-1]^2 a_max
+    a_max2: float               # a_max^2
+
+
+@functools.lru_cache(maxsize=16)
+def _escape_grid(horizon_s: float, sample_s: float, commit_s: float, a_max: float, directions: int) -> _EscapeGrid:
+    t = np.arange(0, int(round(horizon_s / sample_s)) + 1) * sample_s
+    tc = min(commit_s, t[-1])
+    alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
+    beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
+    dirs = _directions(directions)
+    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])
+    g = _EscapeGrid(t, 0.5 * t ** 2, alpha, beta, t[1:].copy(), cand_fixed, float(0.5 * t[-1] ** 2 * a_max), float(a_max ** 2))
+    for v in g:
+        if isinstance(v, np.ndarray):
+            v.flags.writeable = False
+    return g
+
+
+@functools.lru_cache(maxsize=16)
+def _escape_args(bp: BackstopParams, commit_s: float) -> tuple:
+    """backstop_kernels.escape_rows' arguments after the sensed data: the grid and the parameters, once per (bp, commit_s)."""
+    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions)
+    return (g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
+            float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
+            bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
+            g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2)
 
 
 def _directions(k: int) -> np.ndarray:
     ang = 2.0 * np.pi * np.arange(k) / k
     return np.stack([np.cos(ang), np.sin(ang)], axis=1)
-
-
-def _segment_min(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest approach along piecewise-linear relative tracks p (m, T + 1, 2) (sample 0 = now):
-    per entry the smallest |p| over the T segments (as the collision metric checks each step's
-    segment, SPEC 6; samples alone miss up to half a sample of a fast pass) and the index of the
-    segment where it occurs. Returns (dmin (m,), segment (m,))."""
-    d0 = p[:, :-1, :]
-    dd = p[:, 1:, :] - d0
-    den = np.einsum("mtd,mtd->mt", dd, dd)
-    tau = np.clip(-np.einsum("mtd,mtd->mt", d0, dd) / np.maximum(den, 1e-300), 0.0, 1.0)
-    dist = np.linalg.norm(d0 + tau[:, :, None] * dd, axis=2)
-    k = np.argmin(dist, axis=1)
-    return dist[np.arange(dist.shape[0]), k], k
 
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
@@ -128,88 +137,12 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     a_out = np.array(a_nom, dtype=float, copy=True)
     if sensed_states.shape[0] == 0 or not np.any(threat):
         return a_out, active
-    a_max = bp.a_max_m_s2
-    t = np.arange(0, int(round(bp.horizon_s / bp.escape_sample_s)) + 1) * bp.escape_sample_s       # (T + 1,), t[0] = 0
-    # a threat's braking hypothesis: its velocity w decays at a_max to 0; displacement removed from its coasting track
-    ti = np.flatnonzero(threat)
-    w = sensed_states[ti, 2:4]
-    wn = np.linalg.norm(w, axis=1)
-    tb = np.minimum(t[None, :], (wn / a_max)[:, None])                                           # (m_thr, T + 1)
-    back = (0.5 * a_max * tb ** 2)[:, :, None] * (w / np.maximum(wn, 1e-12)[:, None])[:, None, :]
-
-    def rel_tracks(ent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Other vehicles' tracks relative to the own *coasting* vehicle (a = 0), q(t) - r - v t: the
-        constant-velocity one for every entry (m, T + 1, 2), and the braking one for the threats among them."""
-        d = sensed_states[ent, 0:2] - own[owner[ent], 0:2]
-        u = sensed_states[ent, 2:4] - own[owner[ent], 2:4]
-        rel = d[:, None, :] + t[None, :, None] * u[:, None, :]
-        at = np.searchsorted(ti, ent[threat[ent]])
-        return rel, rel[threat[ent]] - back[at]
-
-    # which rows does the nominal command (held over the horizon) put in conflict with a threat
-    rel_t, rel_tb = rel_tracks(ti)
-    own_nom = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ti]][:, None, :]
-    dmin_nom = np.minimum(_segment_min(rel_t - own_nom)[0], _segment_min(rel_tb - own_nom)[0])
-    hit = dmin_nom < trigger_m[ti]
-    active[np.unique(owner[ti[hit]])] = True
+    # one compiled call (backstop_kernels.escape_rows): the same operations in the same order as the numpy formulation
+    # it replaced (tests/_backstop_reference.py), ~2,700 small numpy calls per escape step for a bank of one
+    a_out, active = backstop_kernels.escape_rows(
+        np.ascontiguousarray(own, dtype=float), a_out, np.ascontiguousarray(sensed_states, dtype=float),
+        np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
+        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s))
     if not np.any(active):
         return a_out, active
-    rows = np.flatnonzero(active)
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[rows] = np.arange(rows.size)
-    ent = np.flatnonzero(active[owner])                      # every sensed entry of the active rows
-    e_row = pos[owner[ent]]
-    rel, rel_b = rel_tracks(ent)
-    thr, clear = threat[ent], clear_m[ent]
-    wgt = np.where(thr, bp.escape_threat_weight, bp.escape_planned_weight)
-    # 'keep right' (as the plan's repulsion): against each vehicle the nominal command conflicts with, a
-    # sideways escape to the left of the approach costs extra, so two escaping vehicles pick opposite sides
-    u_s = rel[:, 1, :] - rel[:, 0, :]
-    u_s = u_s / bp.escape_sample_s
-    un_s = np.linalg.norm(u_s, axis=1)
-    left = np.stack([u_s[:, 1], -u_s[:, 0]], axis=1) / np.maximum(un_s, 1e-12)[:, None]         # -u rotated +90 deg
-    own_nom_e = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ent]][:, None, :]
-    dn = _segment_min(rel - own_nom_e)[0]
-    dn[thr] = np.minimum(dn[thr], _segment_min(rel_b - own_nom_e[thr])[0])
-    conflict = (dn < clear) & (un_s > bp.u_noise_m_s)
-    # the own displacement under (a_1 for commit_s, then a_2): alpha(t) a_1 + beta(t) a_2
-    tc = min(commit_s, t[-1])
-    alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
-    beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
-    dirs = _directions(bp.escape_directions)
-    cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])            # (C - 1, 2)
-    # lateral departures from the own track cost escape_lateral_cost x more than along-track ones (braking keeps
-    # a UAV in its own lane, which the plan has deconflicted from the other groups' lanes)
-    vo = own[rows, 2:4]
-    vn = np.linalg.norm(vo, axis=1)
-    v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
-    a_nom_r = a_nom[rows]
-    best = np.full(rows.size, np.inf)
-    t_seg = t[1:]
-    for c in range(cand_fixed.shape[0] + 1):
-        a1 = a_nom_r if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
-        phase2 = (a_nom_r, np.zeros_like(a_nom_r), -a1, a1) if bp.escape_two_phase else (a1,)
-        pen_best = np.full(rows.size, np.inf)
-        for a2 in phase2:
-            disp = alpha[None, :, None] * a1[e_row][:, None, :] + beta[None, :, None] * a2[e_row][:, None, :]   # (m', T + 1, 2)
-            dmin, k = _segment_min(rel - disp)
-            if np.any(thr):
-                db, kb = _segment_min(rel_b - disp[thr])
-                worse = db < dmin[thr]
-                dmin[thr] = np.where(worse, db, dmin[thr])
-                k[thr] = np.where(worse, kb, k[thr])
-            # urgency: a conflict predicted at t counts tau_min / max(t, tau_min) (one that comes later can still be
-            # solved at a later step; an imminent one cannot)
-            urg = bp.tau_min_s / np.maximum(t_seg[k], bp.tau_min_s) if bp.escape_urgency else 1.0
-            pen = wgt * urg * np.maximum(0.0, clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0) ** 2
-            pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
-                                 (0.5 * t[-1] ** 2 * a_max), 0.0)
-            pen_best = np.minimum(pen_best, np.bincount(e_row, pen, rows.size))
-        da_c = a1 - a_nom_r
-        along = np.einsum("rd,rd->r", da_c, v_hat)
-        effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
-        cost = pen_best + bp.escape_effort * effort
-        better = cost < best
-        best = np.where(better, cost, best)
-        a_out[rows[better]] = a1[better]
-    return cap_norm(a_out, a_max), active
+    return cap_norm(a_out, bp.a_max_m_s2), active

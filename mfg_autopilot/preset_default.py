@@ -26,7 +26,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import controller, kernels
+from . import backstop_kernels, controller, kernels
 from .backstop import apply_backstop, backstop_acc, escape_acc
 from .controller import HeardSummary, Neighbours, Observation
 from .default_params import DefaultPreset
@@ -58,6 +58,8 @@ class _DefaultBase:
         self.backstop_active = np.zeros(self.n, dtype=bool)
         self.backstop_steps = np.zeros(self.n, dtype=np.int64)
         self._own_err: np.ndarray | None = None     # MFG: each row's deviation from its plan particle, s - s_plan (n, 4)
+        if bp.enabled:
+            backstop_kernels.warm_up()      # load the compiled backstop now, not in the first control step (both modes)
 
     @property
     def n(self) -> int:
@@ -185,6 +187,8 @@ class DefaultMFGController(_DefaultBase):
         kernels.warm_up()                   # load the compiled kernels now, not in the first control step
         self.plan: MeanFieldPlan | None = None
         self._plan_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its particles), _plan_distance
+        ps = p.backstop.plan_mismatch_s
+        self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
@@ -219,11 +223,12 @@ class DefaultMFGController(_DefaultBase):
             return None
         return super().sensed_cutoff_m(states)
 
+    _BRUTE_MAX_PAIRS = 4096     # _beyond_plan: up to this many (state, particle) pairs by brute force, not the k-d tree
+
     def _plan_distance(self, q: np.ndarray) -> np.ndarray:
         """(m,) distance of states q to the nearest plan particle in the metric
         |dr|^2 + (plan_mismatch_s |dv|)^2; the particles' k-d tree is built once per plan step."""
-        ps = self.preset.backstop.plan_mismatch_s
-        w = np.array([1.0, 1.0, ps, ps])
+        w = self._plan_metric_w
         if self._plan_tree is None or self._plan_tree[0] != self.plan.k:
             self._plan_tree = (self.plan.k, cKDTree(self.plan.states * w))
         d, _ = self._plan_tree[1].query(q * w, k=1)
@@ -240,6 +245,16 @@ class DefaultMFGController(_DefaultBase):
             dx = q - self.plan.states[hint]
             d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
             todo = np.flatnonzero(~(d2 <= (threshold_m * (1.0 - 1e-9)) ** 2))
+        if 0 < todo.size * self.plan.N <= self._BRUTE_MAX_PAIRS and threshold_m > 0:
+            # a few states (a bank of one's sensed vehicles): every particle's distance, without (re)building the
+            # k-d tree (the plan moves every step); decided only where clearly beyond or within (the same 1e-9
+            # relative margin as above), the rest exactly by the tree
+            ps = self.preset.backstop.plan_mismatch_s
+            dx = q[todo, None, :] - self.plan.states[None, :, :]
+            d2 = np.min(dx[:, :, 0] ** 2 + dx[:, :, 1] ** 2 + ps * ps * (dx[:, :, 2] ** 2 + dx[:, :, 3] ** 2), axis=1)
+            beyond = d2 > (threshold_m * (1.0 + 1e-9)) ** 2
+            out[todo[beyond]] = True
+            todo = todo[~(beyond | (d2 <= (threshold_m * (1.0 - 1e-9)) ** 2))]
         if todo.size:
             out[todo] = self._plan_distance(q[todo]) > threshold_m
         return out

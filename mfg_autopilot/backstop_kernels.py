@@ -1,0 +1,453 @@
+"""Compiled (numba) candidate evaluation of the escape manoeuvre (``backstop.escape_acc``).
+
+The numpy formulation loops over (1 + 2 x escape_directions) first-phase candidates x 4
+second-phase ones and makes ~20 small numpy calls each: ~2,700 calls per escape step for a
+bank of one (~25 ms CPU with 3-10 sensed vehicles). :func:`escape_candidates` does the same
+loop in one compiled call.
+
+Bit-identical to the numpy code it replaces (``tests/test_backstop_speed.py`` checks it with
+``np.array_equal`` against a verbatim copy of the old code): every quantity is computed with
+the same floating-point operations in the same order - a 2-vector dot product as
+x0 y0 + x1 y1 (what ``np.einsum`` and ``np.linalg.norm`` give for a trailing axis of 2), a
+square as x x, sums per row in entry order from 0.0 (``np.bincount``), NaN propagated as
+``np.maximum`` / ``np.minimum`` / ``np.clip`` / ``np.argmin`` do - and no fast-math (no
+contraction into fused multiply-adds, no reassociation). Single-threaded; compiled code is
+cached on disk (``cache=True``); :func:`warm_up` loads or compiles it before a control loop starts.
+
+Shapes as in ``escape_acc``: m' sensed entries of the active rows, T + 1 samples, r active rows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "warm_up"]
+
+
+@njit(cache=True)
+def _max(a, b):
+    """np.maximum (NaN propagates)."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a >= b else b
+
+
+@njit(cache=True)
+def _min(a, b):
+    """np.minimum (NaN propagates)."""
+    if a != a:
+        return a
+    if b != b:
+        return b
+    return a if a <= b else b
+
+
+@njit(cache=True)
+def _clip01(x):
+    """np.clip(x, 0.0, 1.0) (NaN propagates)."""
+    if x != x:
+        return x
+    y = x if x > 0.0 else 0.0
+    return y if y < 1.0 else 1.0
+
+
+@njit(cache=True)
+def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
+    """backstop._segment_min for one entry e of the track p (., T + 1, 2) minus the own displacement
+    alpha(t) a_1 + beta(t) a_2: (dmin, segment)."""
+    T = p.shape[1] - 1
+    best = 0.0
+    kbest = 0
+    px0 = p[e, 0, 0] - (alpha[0] * a1x + beta[0] * a2x)
+    py0 = p[e, 0, 1] - (alpha[0] * a1y + beta[0] * a2y)
+    for s in range(T):
+        px1 = p[e, s + 1, 0] - (alpha[s + 1] * a1x + beta[s + 1] * a2x)
+        py1 = p[e, s + 1, 1] - (alpha[s + 1] * a1y + beta[s + 1] * a2y)
+        ddx = px1 - px0
+        ddy = py1 - py0
+        den = ddx * ddx + ddy * ddy
+        tau = _clip01(-(px0 * ddx + py0 * ddy) / _max(den, 1e-300))
+        qx = px0 + tau * ddx
+        qy = py0 + tau * ddy
+        dist = math.sqrt(qx * qx + qy * qy)
+        if s == 0:
+            best = dist
+            kbest = 0
+            if dist != dist:
+                return best, kbest
+        elif dist != dist:
+            return dist, s
+        elif dist < best:
+            best = dist
+            kbest = s
+        px0 = px1
+        py0 = py1
+    return best, kbest
+
+
+@njit(cache=True)
+def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed, a_nom_r,
+                      v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den, effort_w, lateral_cost,
+                      a_max2):
+    """The escape's choice of first-phase command per active row: (a_1 (r, 2), chosen (r,) bool).
+
+    rel (m', T + 1, 2): constant-velocity tracks relative to the own coasting vehicle; rel_b (m_b, T + 1, 2) the
+    braking ones, entry e's at b_index[e] (-1: not a threat); e_row (m',) the entry's active row; wgt, clear (m',);
+    conflict (m',) bool and left (m', 2): the keep-right term; alpha, beta (T + 1,): the own displacement
+    alpha a_1 + beta a_2; t_seg (T,) the segments' end times; cand_fixed (C - 1, 2): the candidates after a_nom;
+    a_nom_r, v_hat (r, 2). keep_right_den = 0.5 t[-1]^2 a_max, a_max2 = a_max^2 (as the numpy code computes them).
+    chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom)."""
+    m = rel.shape[0]
+    r = a_nom_r.shape[0]
+    T1 = rel.shape[1]
+    n_c = cand_fixed.shape[0] + 1
+    n_p = 4 if two_phase else 1
+    best = np.full(r, np.inf)
+    a_out = np.empty((r, 2))
+    chosen = np.zeros(r, dtype=np.bool_)
+    a1 = np.empty((r, 2))
+    a2 = np.empty((r, 2))
+    pen_best = np.empty(r)
+    acc = np.empty(r)
+    for c in range(n_c):
+        for i in range(r):
+            if c == 0:
+                a1[i, 0] = a_nom_r[i, 0]
+                a1[i, 1] = a_nom_r[i, 1]
+            else:
+                a1[i, 0] = cand_fixed[c - 1, 0]
+                a1[i, 1] = cand_fixed[c - 1, 1]
+            pen_best[i] = np.inf
+        for ph in range(n_p):
+            for i in range(r):
+                if n_p == 1 or ph == 3:
+                    a2[i, 0] = a1[i, 0]
+                    a2[i, 1] = a1[i, 1]
+                elif ph == 0:
+                    a2[i, 0] = a_nom_r[i, 0]
+                    a2[i, 1] = a_nom_r[i, 1]
+                elif ph == 1:
+                    a2[i, 0] = 0.0
+                    a2[i, 1] = 0.0
+                else:
+                    a2[i, 0] = -a1[i, 0]
+                    a2[i, 1] = -a1[i, 1]
+                acc[i] = 0.0
+            for e in range(m):
+                i = e_row[e]
+                dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
+                j = b_index[e]
+                if j >= 0:
+                    db, kb = _segment_min_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0],
+                                              a2[i, 1])
+                    if db < dmin:
+                        dmin = db
+                        k = kb
+                urg = tau_min_s / _max(t_seg[k], tau_min_s) if urgency else 1.0
+                x = _max(0.0, clear[e] / _max(dmin, d_floor_m) - 1.0)
+                pen = wgt[e] * urg * (x * x)
+                if conflict[e]:
+                    dx = alpha[T1 - 1] * a1[i, 0] + beta[T1 - 1] * a2[i, 0]
+                    dy = alpha[T1 - 1] * a1[i, 1] + beta[T1 - 1] * a2[i, 1]
+                    pen = pen + keep_right * _max(0.0, left[e, 0] * dx + left[e, 1] * dy) / keep_right_den
+                else:
+                    pen = pen + 0.0
+                acc[i] += pen
+            for i in range(r):
+                pen_best[i] = _min(pen_best[i], acc[i])
+        for i in range(r):
+            dax = a1[i, 0] - a_nom_r[i, 0]
+            day = a1[i, 1] - a_nom_r[i, 1]
+            along = dax * v_hat[i, 0] + day * v_hat[i, 1]
+            effort = (along * along + lateral_cost * ((dax * dax + day * day) - along * along)) / a_max2
+            cost = pen_best[i] + effort_w * effort
+            if cost < best[i]:
+                best[i] = cost
+                a_out[i, 0] = a1[i, 0]
+                a_out[i, 1] = a1[i, 1]
+                chosen[i] = True
+    return a_out, chosen
+
+
+@njit(cache=True)
+def _seg_min_held(p, e, half_t2, ax, ay):
+    """backstop._segment_min for entry e of p (., T + 1, 2) minus the own displacement 0.5 t^2 a of a held command a."""
+    T = p.shape[1] - 1
+    best = 0.0
+    kbest = 0
+    px0 = p[e, 0, 0] - half_t2[0] * ax
+    py0 = p[e, 0, 1] - half_t2[0] * ay
+    for s in range(T):
+        px1 = p[e, s + 1, 0] - half_t2[s + 1] * ax
+        py1 = p[e, s + 1, 1] - half_t2[s + 1] * ay
+        ddx = px1 - px0
+        ddy = py1 - py0
+        den = ddx * ddx + ddy * ddy
+        tau = _clip01(-(px0 * ddx + py0 * ddy) / _max(den, 1e-300))
+        qx = px0 + tau * ddx
+        qy = py0 + tau * ddy
+        dist = math.sqrt(qx * qx + qy * qy)
+        if s == 0:
+            best = dist
+            if dist != dist:
+                return best, 0
+        elif dist != dist:
+            return dist, s
+        elif dist < best:
+            best = dist
+            kbest = s
+        px0 = px1
+        py0 = py1
+    return best, kbest
+
+
+@njit(cache=True)
+def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
+    """Tracks of the entries ent relative to the own coasting vehicle into rel (len(ent), T + 1, 2), d + t u, and the
+    braking ones of the threats among them into rel_b (rel minus back[b_of[entry]]), in entry order."""
+    T1 = t.shape[0]
+    nb = 0
+    for q in range(ent.shape[0]):
+        e = ent[q]
+        o = owner[e]
+        dx = sensed_states[e, 0] - own[o, 0]
+        dy = sensed_states[e, 1] - own[o, 1]
+        ux = sensed_states[e, 2] - own[o, 2]
+        uy = sensed_states[e, 3] - own[o, 3]
+        for s in range(T1):
+            rel[q, s, 0] = dx + t[s] * ux
+            rel[q, s, 1] = dy + t[s] * uy
+        j = b_of[e]
+        if j >= 0:
+            for s in range(T1):
+                rel_b[nb, s, 0] = rel[q, s, 0] - back[j, s, 0]
+                rel_b[nb, s, 1] = rel[q, s, 1] - back[j, s, 1]
+            nb += 1
+    return nb
+
+
+@njit(cache=True)
+def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
+                a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
+                keep_right, keep_right_den, effort_w, lateral_cost, a_max2):
+    """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
+    least one threat. Same operations, in the same order, as the numpy code (module docstring)."""
+    n = own.shape[0]
+    m = sensed_states.shape[0]
+    T1 = t.shape[0]
+    a_out = a_nom.copy()
+    active = np.zeros(n, dtype=np.bool_)
+    # the threats' braking hypothesis: velocity w decays at a_max; back[j] the displacement it removes
+    b_of = np.full(m, -1, dtype=np.int64)
+    n_thr = 0
+    for e in range(m):
+        if threat[e]:
+            b_of[e] = n_thr
+            n_thr += 1
+    ti = np.empty(n_thr, dtype=np.int64)
+    back = np.empty((n_thr, T1, 2))
+    for e in range(m):
+        j = b_of[e]
+        if j < 0:
+            continue
+        ti[j] = e
+        wx = sensed_states[e, 2]
+        wy = sensed_states[e, 3]
+        wn = math.sqrt(wx * wx + wy * wy)
+        hx = wx / _max(wn, 1e-12)
+        hy = wy / _max(wn, 1e-12)
+        ts = wn / a_max
+        for s in range(T1):
+            tb = _min(t[s], ts)
+            c = 0.5 * a_max * (tb * tb)
+            back[j, s, 0] = c * hx
+            back[j, s, 1] = c * hy
+    # rows whose nominal command (held) brings a threat below its trigger
+    rel_t = np.empty((n_thr, T1, 2))
+    rel_tb = np.empty((n_thr, T1, 2))
+    _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb)
+    for j in range(n_thr):
+        o = owner[ti[j]]
+        d1, _ = _seg_min_held(rel_t, j, half_t2, a_nom[o, 0], a_nom[o, 1])
+        d2, _ = _seg_min_held(rel_tb, j, half_t2, a_nom[o, 0], a_nom[o, 1])
+        if _min(d1, d2) < trigger_m[ti[j]]:
+            active[o] = True
+    r = 0
+    pos = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        if active[i]:
+            pos[i] = r
+            r += 1
+    if r == 0:
+        return a_out, active
+    rows = np.empty(r, dtype=np.int64)
+    for i in range(n):
+        if active[i]:
+            rows[pos[i]] = i
+    n_ent = 0
+    n_bt = 0
+    for e in range(m):
+        if active[owner[e]]:
+            n_ent += 1
+            if threat[e]:
+                n_bt += 1
+    ent = np.empty(n_ent, dtype=np.int64)
+    q = 0
+    for e in range(m):
+        if active[owner[e]]:
+            ent[q] = e
+            q += 1
+    rel = np.empty((n_ent, T1, 2))
+    rel_b = np.empty((n_bt, T1, 2))
+    _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b)
+    e_row = np.empty(n_ent, dtype=np.int64)
+    b_index = np.full(n_ent, -1, dtype=np.int64)
+    wgt = np.empty(n_ent)
+    clear = np.empty(n_ent)
+    conflict = np.zeros(n_ent, dtype=np.bool_)
+    left = np.empty((n_ent, 2))
+    nb = 0
+    for q in range(n_ent):
+        e = ent[q]
+        o = owner[e]
+        e_row[q] = pos[o]
+        clear[q] = clear_m[e]
+        wgt[q] = threat_weight if threat[e] else planned_weight
+        # 'keep right': the approach's velocity from the first segment, -u rotated +90 deg
+        usx = rel[q, 1, 0] - rel[q, 0, 0]
+        usy = rel[q, 1, 1] - rel[q, 0, 1]
+        usx = usx / sample_s
+        usy = usy / sample_s
+        un = math.sqrt(usx * usx + usy * usy)
+        left[q, 0] = usy / _max(un, 1e-12)
+        left[q, 1] = -usx / _max(un, 1e-12)
+        dn, _ = _seg_min_held(rel, q, half_t2, a_nom[o, 0], a_nom[o, 1])
+        if threat[e]:
+            b_index[q] = nb
+            db, _ = _seg_min_held(rel_b, nb, half_t2, a_nom[o, 0], a_nom[o, 1])
+            dn = _min(dn, db)
+            nb += 1
+        conflict[q] = (dn < clear[q]) and (un > u_noise_m_s)
+    a_nom_r = np.empty((r, 2))
+    v_hat = np.empty((r, 2))
+    for k in range(r):
+        i = rows[k]
+        a_nom_r[k, 0] = a_nom[i, 0]
+        a_nom_r[k, 1] = a_nom[i, 1]
+        vx = own[i, 2]
+        vy = own[i, 3]
+        vn = math.sqrt(vx * vx + vy * vy)
+        if vn > u_noise_m_s:
+            v_hat[k, 0] = vx / _max(vn, 1e-12)
+            v_hat[k, 1] = vy / _max(vn, 1e-12)
+        else:
+            v_hat[k, 0] = 0.0
+            v_hat[k, 1] = 0.0
+    a_best, chosen = escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed,
+                                       a_nom_r, v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den,
+                                       effort_w, lateral_cost, a_max2)
+    for k in range(r):
+        if chosen[k]:
+            a_out[rows[k], 0] = a_best[k, 0]
+            a_out[rows[k], 1] = a_best[k, 1]
+    return a_out, active
+
+
+@njit(cache=True)
+def _cap_row(ax, ay, limit):
+    """planner.cap_norm for one row: a * min(1, limit / max(|a|, 1e-300))."""
+    f = _min(1.0, limit / _max(math.sqrt(ax * ax + ay * ay), 1e-300))
+    return ax * f, ay * f
+
+
+@njit(cache=True)
+def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m, target_m, share, tau_min_s, a_max):
+    """backstop.backstop_acc (its docstring): the correction delta_a (n, 2). u_noise2 = u_noise_m_s ** 2 as Python computes it."""
+    out = np.zeros((n, 2))
+    m = sensed_states.shape[0]
+    any_act = False
+    for p in range(m):
+        o = owner[p]
+        dx = sensed_states[p, 0] - own[o, 0]
+        dy = sensed_states[p, 1] - own[o, 1]
+        ux = sensed_states[p, 2] - own[o, 2]
+        uy = sensed_states[p, 3] - own[o, 3]
+        uu = ux * ux + uy * uy
+        tau = -(dx * ux + dy * uy) / _max(uu, 1e-12)
+        if tau == tau:                                   # np.clip(tau, 0, horizon_s)
+            tau = tau if tau > 0.0 else 0.0
+            tau = tau if tau < horizon_s else horizon_s
+        if not uu >= u_noise2:
+            tau = 0.0
+        cx = dx + tau * ux
+        cy = dy + tau * uy
+        rho = math.sqrt(cx * cx + cy * cy)
+        act = rho < trigger_m
+        any_act = any_act or act
+        un = math.sqrt(uu)
+        if rho > 1e-6:
+            nx = cx / _max(rho, 1e-12)
+            ny = cy / _max(rho, 1e-12)
+        elif un > 1e-9:
+            nx = -uy / _max(un, 1e-12)
+            ny = ux / _max(un, 1e-12)
+        else:
+            nx = 1.0
+            ny = 0.0
+        mag = 0.0
+        if act:
+            tm = _max(tau, tau_min_s)
+            mag = share * 2.0 * (target_m - rho) / (tm * tm)
+        out[o, 0] += -mag * nx
+        out[o, 1] += -mag * ny
+    if not any_act:
+        return np.zeros((n, 2))
+    for i in range(n):
+        out[i, 0], out[i, 1] = _cap_row(out[i, 0], out[i, 1], a_max)
+    return out
+
+
+@njit(cache=True)
+def half_plane_filter(a_nom, delta_a, a_max, a_max2):
+    """backstop.apply_backstop (its docstring): (command (n, 2), active (n,)). a_max2 = a_max ** 2 as Python computes it."""
+    n = a_nom.shape[0]
+    a = np.empty((n, 2))
+    active = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        dx = delta_a[i, 0]
+        dy = delta_a[i, 1]
+        a_req = math.sqrt(dx * dx + dy * dy)
+        ax = a_nom[i, 0]
+        ay = a_nom[i, 1]
+        if a_req > 0:
+            active[i] = True
+            nx = dx / _max(a_req, 1e-300)
+            ny = dy / _max(a_req, 1e-300)
+            a_n_nom = ax * nx + ay * ny
+            a_n = _min(_max(a_req, a_n_nom), a_max)
+            tx = ax - a_n_nom * nx
+            ty = ay - a_n_nom * ny
+            tx, ty = _cap_row(tx, ty, math.sqrt(_max(a_max2 - a_n * a_n, 0.0)))
+            ax = a_n * nx + tx
+            ay = a_n * ny + ty
+        a[i, 0], a[i, 1] = _cap_row(ax, ay, a_max)
+    return a, active
+
+
+def warm_up() -> None:
+    """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it."""
+    s1 = np.array([[0.0, 0.0, 1.0, 0.0]])
+    da = half_plane_acc(np.zeros((1, 4)), s1 + 0.05, np.zeros(1, dtype=np.int64), 1, 2.0, 0.25, 0.15, 0.15, 0.5, 0.5, 2.0)
+    half_plane_filter(np.zeros((1, 2)), da, 2.0, 4.0)
+    T1 = 3
+    rel = np.zeros((1, T1, 2))
+    rel[0, :, 0] = (1.0, 0.5, 0.0)
+    escape_candidates(rel, rel.copy(), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones(1), np.ones(1),
+                      np.ones(1, dtype=np.bool_), np.zeros((1, 2)), np.array([0.0, 0.005, 0.02]), np.zeros(T1),
+                      np.array([0.1, 0.2]), np.ones((2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), True, True, 0.5, 0.05,
+                      2.0, 0.04, 1.0, 1.0, 4.0)
