@@ -5,6 +5,7 @@ LOCAL_POSITION_NED); the link's traffic sets (loopback UDP)."""
 
 from __future__ import annotations
 
+import math
 import random
 import socket
 import threading
@@ -27,7 +28,7 @@ from mavlink_bridge import (
     VehicleLink,
     acceleration_setpoint,
 )
-from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME, adsb_states, traffic_tag
+from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME, adsb_states, home_e7, metres_per_e7, traffic_tag
 from mavlink_bridge.codec import MavCodec
 from mock_vehicle.proximity import (
     DEFAULT_HOME_DEG,
@@ -98,6 +99,35 @@ def test_encoding_does_not_depend_on_how_many_are_encoded_together():
     parts = np.vstack([encode_traffic(states[i:i + 7]) for i in range(0, 300, 7)])
     np.testing.assert_array_equal(whole, parts)
     np.testing.assert_array_equal(quantise_sensed_states(states)[5:9], quantise_sensed_states(states[5:9]))
+
+
+def _encode_traffic_scalar(states, home_deg=DEFAULT_HOME_DEG):
+    """The per-vehicle scalar formulas encode_traffic must reproduce bit for bit."""
+    h_lat, h_lon = home_e7(home_deg)
+    m_n, m_e = metres_per_e7(h_lat)
+    out = np.empty((states.shape[0], 4), dtype=np.int64)
+    for i, (x, y, vx, vy) in enumerate(np.asarray(states, dtype=float).tolist()):
+        speed = math.hypot(vx, vy)
+        out[i] = (h_lat + round(x / m_n), h_lon + round(y / m_e), min(round(speed * 100.0), 65535),
+                  round(math.degrees(math.atan2(vy, vx)) * 100.0) % 36000 if speed > 0 else 0)
+    return out
+
+
+def test_encoding_equals_the_scalar_formulas():
+    """numpy for the exact IEEE parts, Python's math.hypot/atan2 per vehicle: the same integers as the
+    scalar formulas (numpy's own hypot/arctan2 would differ in the last bit for some inputs), including
+    rest (heading 0), the speed cap, negative headings, half-way roundings and the empty set."""
+    rng = np.random.default_rng(11)
+    states = np.concatenate([_random_states(rng, 5000),
+                             rng.normal(0.0, 1.0, (2000, 4)) * [300.0, 300.0, 0.3, 0.3],
+                             [[0.0, 0.0, 0.0, 0.0], [1.0, 2.0, 0.0, -0.0], [0.0, 0.0, 700.0, 1.0],
+                              [0.0, 0.0, -1.0, -1e-9], [0.0, 0.0, 0.005, 0.0], [0.0, 0.0, 0.015, 0.0]]])
+    m_n, m_e = metres_per_e7(home_e7(DEFAULT_HOME_DEG)[0])
+    states = np.concatenate([states, [[2.5 * m_n, -0.5 * m_e, 0.0, 1.0]]])      # exact halves: round half to even
+    np.testing.assert_array_equal(encode_traffic(states), _encode_traffic_scalar(states))
+    assert encode_traffic(np.zeros((0, 4))).shape == (0, 4)
+    with pytest.raises(ValueError, match="finite"):
+        encode_traffic(np.array([[0.0, 0.0, float("nan"), 1.0]]))
 
 
 def test_adsb_fields_follow_common_xml():
