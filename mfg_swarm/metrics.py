@@ -38,36 +38,28 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
     Candidates per step: a pair can come within b during a step only if it starts within
     b + |delta_j - delta_i| <= b + e_i + e_j, delta_k the step's displacement of UAV k and
     e_k = |delta_k - c| (c: the median displacement) - a swarm flying together has small e_k
-    (spatial.pairs_within_reach). b = radius first; if no candidate comes within the radius,
-    b = the smallest distance found (else the nearest start distance), which is at least the
-    step's smallest distance, so min_pair_distance_m is exact too.
+    (spatial.pairs_within_reach). One search per step with b = max(radius, the smallest distance
+    found so far) (at the first step: the nearest start distance, which some pair attains): every
+    pair within the radius is a candidate, and a step whose smallest distance beats the smallest
+    so far has its closest pair among the candidates, so min_pair_distance_m is exact too.
     """
     T1, N, _ = pos_m.shape
     if N < 2:
         return {"collision_pairs": 0, "collision_pair_steps": 0, "min_pair_distance_m": float("inf"), "pairs": []}
     pairs_hit: set[tuple[int, int]] = set()
     pair_steps = 0
-    dmin = np.inf
+    nn, _ = cKDTree(pos_m[0]).query(pos_m[0], k=2)
+    dmin = float(np.min(nn[:, 1]))          # attained at t = 0 (that pair is a candidate of the first step)
     for k in range(max(T1 - 1, 1)):
         p0 = pos_m[k]
         p1 = pos_m[k + 1] if T1 > 1 else p0
         delta = p1 - p0
         extra = np.linalg.norm(delta - np.median(delta, axis=0)[None, :], axis=1)
         tree = cKDTree(p0) if N < GRID_MIN_N else None       # the grid kernel of larger swarms needs none
-        cand = pairs_within_reach(tree, p0, (radius_m + 1e-9, extra), np.inf)
-        dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
-        if not (dseg.size and dseg.min() <= radius_m):
-            # the smallest distance of the step lies above the radius: widen to a distance some pair attains
-            # (the smallest found, else the nearest start distance), which bounds the smallest from above
-            if dseg.size:
-                b = float(dseg.min())
-            else:
-                nn, _ = (tree if tree is not None else cKDTree(p0)).query(p0, k=2)
-                b = float(np.min(nn[:, 1]))
-            cand = pairs_within_reach(tree, p0, (max(radius_m, b) + 1e-9, extra), np.inf)
-            dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
+        cand = pairs_within_reach(tree, p0, (max(radius_m, dmin) + 1e-9, extra), np.inf)
         if cand.size == 0:
             continue
+        dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
         dmin = min(dmin, float(dseg.min()))
         hit = dseg < radius_m
         if np.any(hit):

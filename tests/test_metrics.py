@@ -88,3 +88,17 @@ def test_collisions_equal_the_all_pairs_check(seed, n):
     assert (col["collision_pairs"], col["collision_pair_steps"]) == ref[:2]
     assert col["min_pair_distance_m"] == ref[2]
     assert [tuple(p) for p in col["pairs"]] == ref[3]
+
+
+@pytest.mark.parametrize("n_side", [8, 47])
+def test_min_distance_exact_without_collisions(n_side):
+    # given a jittered lattice flying together, no pair ever within the radius (the min-distance-only path;
+    # 47 x 47 = 2209 vehicles takes the grid kernel)
+    rng = np.random.default_rng(n_side)
+    g = np.stack(np.meshgrid(np.arange(n_side), np.arange(n_side)), axis=-1).reshape(-1, 2) * 1.5
+    steps = rng.normal(0.0, 0.05, (10, g.shape[0], 2)) + np.array([0.5, 0.2])
+    pos = np.concatenate([g[None], g[None] + np.cumsum(steps, axis=0)], axis=0)
+    col = collisions(pos)
+    ref = _brute_collisions(pos)
+    assert ref[0] == 0 and ref[2] > 0.1
+    assert (col["collision_pairs"], col["collision_pair_steps"], col["min_pair_distance_m"]) == ref[:3]
