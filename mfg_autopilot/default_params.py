@@ -55,6 +55,8 @@ class RepulsionParams:
     brake: float = 0.0              # share along -u (lowers the closing speed)
     a_rep_max_m_s2: float = 1.0
     a_plan_max_m_s2: float = 1.4    # plan / reactive command cap, below the vehicle limit
+    heard_guard_fraction: float = 0.0   # HJB_d only (DefaultHJBController): a heard vehicle predicted closer than this x the
+                                        # repulsion radius gets the backstop's half-plane constraint (trigger = target; 0: off)
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,7 @@ class DefaultPreset(Preset):
     dt_s: float = 0.5
     guidance: GuidanceParams = field(default_factory=GuidanceParams)
     repulsion: RepulsionParams = field(default_factory=RepulsionParams)
-    hjb_repulsion: RepulsionParams = field(default_factory=RepulsionParams)   # HJB_d's reactive repulsion on heard states
+    hjb_repulsion: RepulsionParams = field(default_factory=lambda: RepulsionParams(heard_guard_fraction=0.5))   # HJB_d's reactive repulsion on heard states
     tracking: TrackingParams = field(default_factory=TrackingParams)
     backstop: BackstopParams = field(default_factory=BackstopParams)
     use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)

@@ -187,6 +187,20 @@ def test_default_mfg_flies_collision_free_into_every_slot_talking_once(scenario,
         assert h["comm_states_per_uav"] > 100 * (n - 1)
 
 
+def test_default_hjb_crossing_seed_2_head_on_pair_is_kept_apart_by_the_heard_guard():
+    # UAVs 8 and 44 meet head-on at t = 18 s, inside the repulsion radius and heard every step; the sum of the
+    # pushes from the interleaving rows outweighed their own pair's push and they passed 0.046 m apart
+    # (1 collided pair) before the guard on heard vehicles (hjb_repulsion.heard_guard_fraction)
+    h = _fly("crossing", 50, "hjb", 2)
+    assert h["collision_pairs"] == 0, h["collided_pairs_list"]
+    assert h["arrived_fraction"] == 1.0
+    assert h["min_pair_distance_m"] > 0.1
+    off = dataclasses.replace(DEFAULT, hjb_repulsion=dataclasses.replace(DEFAULT.hjb_repulsion, heard_guard_fraction=0.0))
+    cfg = SimConfig(scenario=make_scenario("crossing", 50), mode="hjb", preset=off, seed=2, steps=200, range_m=100.0)
+    m_off = simulate(cfg, progress=False)[1]
+    assert m_off["collision_pairs"] >= 1          # the case still exercises the mechanism without the guard
+
+
 def test_failed_vehicle_is_avoided_and_the_others_arrive():
     # vehicle 22 is the middle of group A's front row: the UAVs behind it in its row head straight at it
     m = _fly("crossing", 50, "mfg", 0, fail_vehicle=22, fail_at_s=10.0)
