@@ -440,14 +440,20 @@ def half_plane_filter(a_nom, delta_a, a_max, a_max2):
 
 
 def warm_up() -> None:
-    """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it."""
-    s1 = np.array([[0.0, 0.0, 1.0, 0.0]])
-    da = half_plane_acc(np.zeros((1, 4)), s1 + 0.05, np.zeros(1, dtype=np.int64), 1, 2.0, 0.25, 0.15, 0.15, 0.5, 0.5, 2.0)
-    half_plane_filter(np.zeros((1, 2)), da, 2.0, 4.0)
-    T1 = 3
-    rel = np.zeros((1, T1, 2))
-    rel[0, :, 0] = (1.0, 0.5, 0.0)
-    escape_candidates(rel, rel.copy(), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones(1), np.ones(1),
-                      np.ones(1, dtype=np.bool_), np.zeros((1, 2)), np.array([0.0, 0.005, 0.02]), np.zeros(T1),
-                      np.array([0.1, 0.2]), np.ones((2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), True, True, 0.5, 0.05,
-                      2.0, 0.04, 1.0, 1.0, 4.0)
+    """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it.
+    Through the public wrappers of mfg_autopilot.backstop, with cases that reach every kernel (an escape
+    that acts, a half-plane push), so the argument types are exactly those of a control step (a kernel
+    first called with other types - a read-only or differently laid out array - would compile again,
+    seconds inside a control step: tests/test_kernels.py checks that a flight step compiles nothing new)."""
+    from .backstop import apply_backstop, backstop_acc, escape_acc      # (backstop imports this module)
+    from .default_params import BackstopParams
+
+    bp = BackstopParams()
+    own = np.array([[0.0, 0.0, 4.0, 0.0]])
+    a_nom = np.array([[0.2, -0.1]])
+    # a hovering (unplanned) vehicle 2 m ahead and a planned one alongside: the escape acts
+    sensed = np.array([[2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 4.0, 0.0]])
+    escape_acc(own, a_nom, sensed, np.array([0, 0]), np.array([True, False]), np.array([0.6, 0.0]),
+               np.array([0.8, 0.5]), bp, 0.5)
+    da = backstop_acc(own, np.array([[0.3, 0.05, 3.0, 0.0]]), np.array([0]), bp)
+    apply_backstop(a_nom, da, 2.0)

@@ -233,3 +233,51 @@ def test_plan_distance_shortcut_gives_exactly_the_tree_decision():
     np.testing.assert_array_equal(ctrl._beyond_plan(q, thr, hint), expected)
     np.testing.assert_array_equal(ctrl._beyond_plan(q, thr, (hint + 7) % 81), expected)
     np.testing.assert_array_equal(ctrl._beyond_plan(q, thr), expected)
+
+
+def test_a_control_step_compiles_nothing_after_the_warm_up():
+    """A kernel first called with argument types the warm-up did not use (another array layout, a
+    read-only array) compiles again inside a control step - seconds on a flight's clock (seen: a
+    real-time flight's first escape stalled its controllers ~14 s). Given a fresh process that builds
+    a default MFG controller of one vehicle (which runs kernels.warm_up), when it flies steps whose
+    sensed traffic comes through the process path (ADSB_VEHICLE reports decoded by adsb_states) with
+    a failed vehicle hovering ahead (the escape acts) and planned neighbours (the half-plane push),
+    then no numba dispatcher gained a compiled signature."""
+    code = """
+import numpy as np, numba
+from numba.core.registry import CPUDispatcher
+from mavlink_bridge.adsb import adsb_states
+from mock_vehicle.proximity import DEFAULT_HOME_DEG, traffic_reports
+from mfg_autopilot import backstop_kernels, kernels
+from mfg_autopilot.controller import Neighbours, Observation, make_controller
+from mfg_autopilot.params import preset_by_name
+from mfg_swarm.scenarios import make_scenario
+p = preset_by_name("default"); n = 25; sc = make_scenario("dense", n)
+s0 = np.concatenate([sc.initial_pos_m, np.tile(p.cost.v_o, (n, 1))], axis=1)
+c = make_controller("mfg", p, sc.destination_m[0:1])
+def sigs():
+    return {f"{m.__name__}.{k}": len(v.signatures) for m in (kernels, backstop_kernels) for k, v in vars(m).items()
+            if isinstance(v, CPUDispatcher)}
+before = sigs()
+c.exchange_t0(s0, np.arange(n), np.array([0]), sc.destination_m)
+home = tuple(DEFAULT_HOME_DEG)
+escapes = pushes = 0
+for k in range(12):
+    x = c.plan.states
+    own = x[0:1].copy()
+    others = x[1:6].copy()
+    others[0, 0:2] = own[0, 0:2] + 2.0 * own[0, 2:4] / max(np.linalg.norm(own[0, 2:4]), 1e-9)   # a failed vehicle ahead
+    others[0, 2:4] = 0.0
+    others[1, 0:2] = own[0, 0:2] + [0.0, 0.3]                                               # a planned one too close
+    ids, st = adsb_states(traffic_reports(np.arange(1, 6), others, 1000 * k, home), home)
+    info = c.step(Observation(k, k * p.dt_s, own, None, Neighbours(st, np.zeros(len(ids), dtype=np.int64), ids)))
+    escapes += int(c.backstop_active[0])
+after = sigs()
+print("escapes", escapes)
+print("new", sorted(k for k in after if after[k] != before.get(k, 0)))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    lines = out.stdout.strip().splitlines()
+    assert int(lines[-2].split()[1]) > 0            # the backstop acted (the case reaches its kernels)
+    assert lines[-1] == "new []"
