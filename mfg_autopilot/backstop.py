@@ -46,12 +46,15 @@ def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, 
     """The backstop's correction delta_a per bank row, (n, 2) (zero rows where inactive): the module docstring's
     delta_a summed per row and capped at a_max (compiled: backstop_kernels.half_plane_acc, one call instead of ~20
     small numpy ones; the same operations in the same order as the numpy formulation, tests/_backstop_reference.py)."""
-    n = own.shape[0]
-    if sensed_states.shape[0] == 0:
+    n, m = own.shape[0], sensed_states.shape[0]
+    if m == 0:
         return np.zeros((n, 2))
+    # trigger and target: scalars, or one per sensed entry (HJB_d's guard on heard vehicles: per-row radii)
+    trig = np.array(np.broadcast_to(np.asarray(bp.trigger_m, dtype=float), (m,)))
+    targ = np.array(np.broadcast_to(np.asarray(bp.target_m, dtype=float), (m,)))
     return backstop_kernels.half_plane_acc(np.ascontiguousarray(own, dtype=float), np.ascontiguousarray(sensed_states, dtype=float),
                                            np.ascontiguousarray(owner, dtype=np.int64), n, float(bp.horizon_s),
-                                           float(bp.u_noise_m_s ** 2), float(bp.trigger_m), float(bp.target_m), float(bp.share),
+                                           float(bp.u_noise_m_s ** 2), trig, targ, float(bp.share),
                                            float(bp.tau_min_s), float(bp.a_max_m_s2))
 
 

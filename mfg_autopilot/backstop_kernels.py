@@ -367,7 +367,8 @@ def _cap_row(ax, ay, limit):
 
 @njit(cache=True)
 def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m, target_m, share, tau_min_s, a_max):
-    """backstop.backstop_acc (its docstring): the correction delta_a (n, 2). u_noise2 = u_noise_m_s ** 2 as Python computes it."""
+    """backstop.backstop_acc (its docstring): the correction delta_a (n, 2). u_noise2 = u_noise_m_s ** 2 as Python computes it;
+    trigger_m, target_m per sensed entry (m,)."""
     out = np.zeros((n, 2))
     m = sensed_states.shape[0]
     any_act = False
@@ -387,7 +388,7 @@ def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m,
         cx = dx + tau * ux
         cy = dy + tau * uy
         rho = math.sqrt(cx * cx + cy * cy)
-        act = rho < trigger_m
+        act = rho < trigger_m[p]
         any_act = any_act or act
         un = math.sqrt(uu)
         if rho > 1e-6:
@@ -402,7 +403,7 @@ def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m,
         mag = 0.0
         if act:
             tm = _max(tau, tau_min_s)
-            mag = share * 2.0 * (target_m - rho) / (tm * tm)
+            mag = share * 2.0 * (target_m[p] - rho) / (tm * tm)
         out[o, 0] += -mag * nx
         out[o, 1] += -mag * ny
     if not any_act:

@@ -79,6 +79,10 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
         own, a_nom, states, owner = _random_case(rng)
         bp = dataclasses.replace(BackstopParams(), trigger_m=float(rng.choice([0.15, 0.6])), target_m=float(rng.choice([0.15, 0.8])),
                                  share=float(rng.choice([0.5, 1.0])))
+        if rng.random() < 0.3:
+            # per-entry trigger = target (HJB_d's guard on heard vehicles: a fraction of each row's radius)
+            g = rng.choice([0.125, 0.354, 0.6], size=states.shape[0])
+            bp = dataclasses.replace(bp, trigger_m=g, target_m=g)
         da_new = backstop.backstop_acc(own, states, owner, bp)
         da_ref = ref.backstop_acc(own, states, owner, bp)
         assert np.array_equal(da_new, da_ref)
