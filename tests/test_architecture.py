@@ -45,3 +45,13 @@ def test_numeric_core_does_no_io():
     for mod in core:
         names = _imports("mfg_autopilot")[f"mfg_autopilot/{mod}.py"]
         assert not names & {"socket", "os", "subprocess", "zenoh", "pymavlink", "logging", "threading"}, mod
+
+
+def test_numba_lives_in_the_kernel_modules_only():
+    """Compiled code stays behind three modules (STYLE: one module per capability); the mock vehicle and the
+    MAVLink bridge never pay numba's import."""
+    kernels = {"mfg_autopilot/kernels.py", "mfg_autopilot/backstop_kernels.py", "mfg_swarm/spatial.py"}
+    for pkg in ("mfg_autopilot", "mock_vehicle", "mfg_swarm", "mavlink_bridge"):
+        for f, names in _imports(pkg).items():
+            if f not in kernels:
+                assert "numba" not in names, f
