@@ -59,7 +59,8 @@ def _clip01(x):
 @njit(cache=True)
 def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
     """backstop._segment_min for one entry e of the track p (., T + 1, 2) minus the own displacement
-    alpha(t) a_1 + beta(t) a_2: (dmin, segment)."""
+    alpha(t) a_1 + beta(t) a_2: (dmin, segment). A command a held over the horizon is alpha = beta =
+    half_t2 (0.5 t^2), a_1 = a, a_2 = 0 (the + 0.0 terms change no distance)."""
     T = p.shape[1] - 1
     best = 0.0
     kbest = 0
@@ -175,38 +176,6 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
 
 
 @njit(cache=True)
-def _seg_min_held(p, e, half_t2, ax, ay):
-    """backstop._segment_min for entry e of p (., T + 1, 2) minus the own displacement 0.5 t^2 a of a held command a."""
-    T = p.shape[1] - 1
-    best = 0.0
-    kbest = 0
-    px0 = p[e, 0, 0] - half_t2[0] * ax
-    py0 = p[e, 0, 1] - half_t2[0] * ay
-    for s in range(T):
-        px1 = p[e, s + 1, 0] - half_t2[s + 1] * ax
-        py1 = p[e, s + 1, 1] - half_t2[s + 1] * ay
-        ddx = px1 - px0
-        ddy = py1 - py0
-        den = ddx * ddx + ddy * ddy
-        tau = _clip01(-(px0 * ddx + py0 * ddy) / _max(den, 1e-300))
-        qx = px0 + tau * ddx
-        qy = py0 + tau * ddy
-        dist = math.sqrt(qx * qx + qy * qy)
-        if s == 0:
-            best = dist
-            if dist != dist:
-                return best, 0
-        elif dist != dist:
-            return dist, s
-        elif dist < best:
-            best = dist
-            kbest = s
-        px0 = px1
-        py0 = py1
-    return best, kbest
-
-
-@njit(cache=True)
 def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
     """Tracks of the entries ent relative to the own coasting vehicle into rel (len(ent), T + 1, 2), d + t u, and the
     braking ones of the threats among them into rel_b (rel minus back[b_of[entry]]), in entry order."""
@@ -273,8 +242,8 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb)
     for j in range(n_thr):
         o = owner[ti[j]]
-        d1, _ = _seg_min_held(rel_t, j, half_t2, a_nom[o, 0], a_nom[o, 1])
-        d2, _ = _seg_min_held(rel_tb, j, half_t2, a_nom[o, 0], a_nom[o, 1])
+        d1, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
+        d2, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
         if _min(d1, d2) < trigger_m[ti[j]]:
             active[o] = True
     r = 0
@@ -326,10 +295,10 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         un = math.sqrt(usx * usx + usy * usy)
         left[q, 0] = usy / _max(un, 1e-12)
         left[q, 1] = -usx / _max(un, 1e-12)
-        dn, _ = _seg_min_held(rel, q, half_t2, a_nom[o, 0], a_nom[o, 1])
+        dn, _ = _segment_min_one(rel, q, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
         if threat[e]:
             b_index[q] = nb
-            db, _ = _seg_min_held(rel_b, nb, half_t2, a_nom[o, 0], a_nom[o, 1])
+            db, _ = _segment_min_one(rel_b, nb, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
             dn = _min(dn, db)
             nb += 1
         conflict[q] = (dn < clear[q]) and (un > u_noise_m_s)
