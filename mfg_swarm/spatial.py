@@ -27,6 +27,7 @@ in another order than a pair list would give (rounding only; tests/test_spatial.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -61,13 +62,8 @@ def pos_sums_by_tree(tree: cKDTree, pts: np.ndarray, range_m: float) -> np.ndarr
     return pos_sum
 
 
-_kernel = None
-
-
+@functools.cache
 def _compile():
-    global _kernel
-    if _kernel is not None:
-        return _kernel
     from numba import njit      # here: numba's import costs ~1 s, paid only by swarms that use the grid
 
     @njit(cache=True, nogil=True)
@@ -139,8 +135,7 @@ def _compile():
             out_sx[k] = sx
             out_sy[k] = sy
 
-    _kernel = grid_count
-    return _kernel
+    return grid_count
 
 
 def count_within(pts: np.ndarray, range_m: float, tree: cKDTree | None = None, pos_sums: bool = False,
@@ -207,13 +202,8 @@ def sorted_unique(k: np.ndarray) -> np.ndarray:
     return k[np.concatenate([[True], k[1:] != k[:-1]])] if k.size else k
 
 
-_pair_kernels = None
-
-
+@functools.cache
 def _compile_pairs():
-    global _pair_kernels
-    if _pair_kernels is not None:
-        return _pair_kernels
     from numba import njit
 
     @njit(cache=True, nogil=True)
@@ -269,8 +259,7 @@ def _compile_pairs():
                         total += 1
         return total
 
-    _pair_kernels = reach_pairs
-    return _pair_kernels
+    return reach_pairs
 
 
 def _grid(pts: np.ndarray, s: float):
