@@ -42,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
     p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")
+    p.add_argument("--log-fpk-weights-every", type=int, default=10, metavar="K",
+                   help="write the FPK weights w_F into every K-th step record and the last (1: every step, 0: never; "
+                        "default 10: they are half of each line)")
     p.add_argument("--tlog", default=None, help="MAVLink .tlog of this link")
     p.add_argument("--mavlink-key", default=None, metavar="FILE",
                    help="MAVLink 2 signing key file (64 hex characters, mode 600; docs/security.md): sign every "
@@ -81,7 +84,8 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         steps=args.steps, hold_on_arrival=hold, log_path=args.log, tlog_path=args.tlog, zenoh=ZenohSettings.from_args(args),
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
         gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
-        vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key, rt_priority=args.rt_priority)
+        vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key, rt_priority=args.rt_priority,
+        log_fpk_weights_every=args.log_fpk_weights_every)
 
 
 def main(argv: list[str] | None = None) -> int:

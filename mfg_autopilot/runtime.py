@@ -88,6 +88,7 @@ class AutopilotConfig:
     traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
     checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
     rt_priority: int | None = None            # SCHED_FIFO priority of the controller's threads (None: normal scheduling)
+    log_fpk_weights_every: int = 10           # w_F in the step record every this many steps and at the last (0: never)
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -102,6 +103,8 @@ class AutopilotConfig:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
         if self.rt_priority is not None:
             check_rt_priority(self.rt_priority)
+        if self.log_fpk_weights_every < 0:
+            raise ValueError(f"--log-fpk-weights-every must be >= 0, got {self.log_fpk_weights_every}")
 
     @property
     def system_id(self) -> int:
@@ -209,6 +212,7 @@ class _PhaseClock:
     def record(self, names: tuple[str, ...]) -> dict:
         """``phases(names)`` plus rx_cpu_ms, gc_ms, gc_collections since the previous record."""
         out = self.phases(names)
+        out["process_cpu_s"] = round(time.process_time(), 6)
         rx = getattr(self.link, "rx_cpu_s", 0.0)
         out["rx_cpu_ms"] = round((rx - self._rx_cpu_s) * 1e3, 4)
         self._rx_cpu_s = rx
@@ -329,9 +333,10 @@ class Autopilot:
                "heard_ids": [] if obs.neighbours is None or obs.neighbours.ids is None else obs.neighbours.ids.tolist(),
                "sensed_ids": None if obs.sensed is None else obs.sensed.ids.tolist(),
                "backstop_active": bool(np.asarray(getattr(self.ctrl, "backstop_active", [False]))[0]),
-               "w_H": w["w_H"][0]}
-        if "w_F" in w:
-            rec["w_F"] = w["w_F"][0]
+               "w_H": w["w_H"][0], "wall_s": time.time()}
+        every = self.cfg.log_fpk_weights_every
+        if "w_F" in w and every and (k % every == 0 or k >= self.cfg.steps - 1):
+            rec["w_F"] = w["w_F"][0]     # thinned: 69 floats are half the line and the log's largest CPU cost
         if latency_s is not None:
             rec["latency_ms"], rec["latency_wake_ms"], rec["latency_compute_ms"] = (x * 1e3 for x in latency_s)
         if timing is not None:

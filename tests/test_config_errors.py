@@ -102,3 +102,13 @@ def test_lockstep_mock_that_could_never_report_its_position_is_refused():
     p = subprocess.run([sys.executable, "-m", "mock_vehicle.cli", "--instance", "0", "--lockstep", "--lockstep-resend-hz", "0",
                         "--onboard-url", "udpout:127.0.0.1:9"], capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "--lockstep-resend-hz must be > 0 in lockstep, got 0.0" in p.stderr
+
+
+def test_negative_fpk_weight_log_interval_is_refused():
+    from mfg_autopilot.cli import build_parser, config_from_args
+
+    args = build_parser().parse_args(["--instance", "0", "--n", "1", "--mode", "mfg", "--log-fpk-weights-every", "-1"])
+    with pytest.raises(ValueError, match="--log-fpk-weights-every must be >= 0, got -1"):
+        config_from_args(args)
+    args = build_parser().parse_args(["--instance", "0", "--n", "1", "--mode", "mfg", "--log-fpk-weights-every", "0"])
+    assert config_from_args(args).log_fpk_weights_every == 0

@@ -61,6 +61,13 @@ def test_lockstep_process_swarm_equals_the_simulator(tmp_path, mode, range_m):
             keys = {"observe_ms", "observe_cpu_ms", "control_ms", "control_cpu_ms", "send_ms", "send_cpu_ms", "rx_cpu_ms",
                     "gc_ms", "gc_collections"} | ({"log_ms", "log_cpu_ms", "wait_ms", "wait_cpu_ms"} if r["step"] else set())
             assert keys <= set(r["timing"]) and all(math.isfinite(v) and v >= 0 for v in r["timing"].values()), r["timing"]
+        # the FPK weights every 10th step and at the last (--log-fpk-weights-every, default 10); w_H every step
+        assert [r["step"] for r in recs if "w_F" in r] == ([k for k in range(steps) if k % 10 == 0 or k == steps - 1]
+                                                           if mode == "mfg" else [])
+        assert all(len(r["w_H"]) == 54 for r in recs)
+        # wall clock and the process's CPU clock per record: both never go back
+        assert all(b["wall_s"] >= a["wall_s"] for a, b in zip(recs, recs[1:]))
+        assert all(b["timing"]["process_cpu_s"] >= a["timing"]["process_cpu_s"] for a, b in zip(recs, recs[1:]))
     # the same flight as the simulator, within the float32 telemetry resolution
     traj_p = load_trajectories(out / "trajectories.npz")
     traj_s, m_s = simulate(SimConfig(make_scenario("paper", n), mode, preset_by_name("paper"), seed=seed, steps=steps,
