@@ -14,6 +14,7 @@ does not exit in time is killed. The results folder then says it is partial.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import random
@@ -147,19 +148,29 @@ def _check_ports_free(kind: int, ports: list[int], what: str) -> None:
                                   f"(e.g. another swarm or PX4 SITL), or choose another base port") from None
 
 
-_WARM_IMPORTS = ("import mfg_autopilot.cli, mfg_autopilot.runtime, mfg_autopilot.zenoh_router, mock_vehicle.cli, "
-                 "mock_vehicle.world, mfg_autopilot.preset_default, mfg_autopilot.pde_control, scipy.spatial")
-"""What the children import (the controller presets are imported by name at run time)."""
+_WARM_IMPORTS = ("import sys, mfg_autopilot.cli, mfg_autopilot.runtime, mfg_autopilot.zenoh_router, mock_vehicle.cli, "
+                 "mock_vehicle.world, mfg_autopilot.preset_default, mfg_autopilot.pde_control, scipy.spatial\n"
+                 "from mfg_autopilot import kernels, backstop_kernels\n"
+                 "kernels.warm_up(); backstop_kernels.warm_up()\n"
+                 "specs = [getattr(m, '__spec__', None) for m in list(sys.modules.values())]\n"
+                 "names = sorted({s.origin + '\\t' + s.cached for s in specs if s is not None and s.has_location "
+                 "and s.cached and str(s.origin).endswith('.py')})\n"
+                 "open(sys.argv[1], 'w', encoding='utf-8').write('\\n'.join(names))\n")
+"""What the children import, and what loading the numba kernels from their cache imports (~70
+numba modules numba loads lazily; the controller presets are imported by name at run time).
+The child lists every source module it loaded in the manifest file named by its argument."""
 
 
 def _bytecode_cache_env(py: str, log_path: Path) -> dict[str, str] | None:
     """The children's environment when this environment forbids writing byte-code
     (PYTHONDONTWRITEBYTECODE, as some sandboxes and CI set it): then each of the 2N + 2
-    processes would compile the same ~60 modules from source at start-up (~0.15 CPU s per
-    controller). Instead one child compiles them into a private cache (PYTHONPYCACHEPREFIX, a
-    0700 directory of this user) that every child reads. Done only when a project module is
-    newer than its cached byte-code; None (children inherit the environment) if not needed or
-    not possible."""
+    processes would compile the same modules from source at start-up (a controller: ~120
+    modules, ~0.8 CPU s, most of them numba's, loaded when the kernels come from numba's cache).
+    Instead one child imports them and loads the kernels once, writing the byte-code into a
+    private cache (PYTHONPYCACHEPREFIX, a 0700 directory of this user) that every child reads.
+    Done again only when a module of the manifest that child wrote is newer than its cached
+    byte-code or has none; None (children inherit the environment) if
+    not needed or not possible."""
     if not os.environ.get("PYTHONDONTWRITEBYTECODE") or os.environ.get("PYTHONPYCACHEPREFIX"):
         return None
     prefix = Path(tempfile.gettempdir()) / f"mfg-swarm-pycache-{os.getuid()}"
@@ -172,21 +183,26 @@ def _bytecode_cache_env(py: str, log_path: Path) -> dict[str, str] | None:
         return None
     env = dict(os.environ, PYTHONPYCACHEPREFIX=str(prefix))
     tag = sys.implementation.cache_tag
-    root = Path(__file__).resolve().parent.parent
-    stale = False
-    for pkg in ("mfg_autopilot", "mavlink_bridge", "mock_vehicle", "mfg_swarm"):
-        for src in (root / pkg).glob("*.py"):
-            pyc = prefix / src.parent.relative_to(src.anchor) / f"{src.stem}.{tag}.pyc"
-            try:
-                stale = stale or pyc.stat().st_mtime < src.stat().st_mtime
-            except OSError:
-                stale = True
+    manifest = prefix / f"manifest-{hashlib.sha256(py.encode()).hexdigest()[:12]}.{tag}.txt"   # per interpreter
+    try:      # source <TAB> its byte-code, one module per line
+        pairs = [tuple(map(Path, line.split("\t"))) for line in manifest.read_text(encoding="utf-8").splitlines() if line]
+    except (OSError, ValueError):
+        pairs = []
+    # (a project module that starts importing a new one is itself newer than its byte-code)
+    stale = not pairs or any(len(p) != 2 for p in pairs)
+    for src, pyc in pairs:
+        if stale:
+            break
+        try:
+            stale = pyc.stat().st_mtime < src.stat().st_mtime
+        except OSError:
+            stale = src.exists()              # a module that is gone is not imported any more
     if stale:
         warm = {k: v for k, v in env.items() if k != "PYTHONDONTWRITEBYTECODE"}
         try:
             with open(log_path, "wb") as fh:
-                subprocess.run([py, "-c", _WARM_IMPORTS], env=warm, stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                               timeout=120, check=False)
+                subprocess.run([py, "-c", _WARM_IMPORTS, str(manifest)], env=warm, stdout=fh, stderr=subprocess.STDOUT,
+                               stdin=subprocess.DEVNULL, timeout=300, check=False)
         except (OSError, subprocess.TimeoutExpired):
             return None
     return env

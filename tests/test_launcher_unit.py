@@ -85,7 +85,27 @@ def test_bytecode_cache_for_children_when_byte_code_writing_is_off(tmp_path, mon
     assert prefix.parent == tmp_path and stat.S_IMODE(prefix.stat().st_mode) == 0o700
     assert env["PYTHONDONTWRITEBYTECODE"] == "1"          # the children still write nothing themselves
     runtime_src = Path(launcher.__file__).resolve().parent.parent / "mfg_autopilot" / "runtime.py"
-    assert list(prefix.rglob(f"runtime.{sys.implementation.cache_tag}.pyc")), (tmp_path / "warm.log").read_text()
+    tag = sys.implementation.cache_tag
+    assert list(prefix.rglob(f"runtime.{tag}.pyc")), (tmp_path / "warm.log").read_text()
+    # numba's lazily imported modules (loaded with the cached kernels) are in it too: without them
+    # every controller compiled ~70 of numba's modules from source at start-up (~0.8 CPU s each)
+    assert [p for p in prefix.rglob(f"*.{tag}.pyc") if "numba" in p.parts and "np" in p.parts], "numba.np not cached"
+    # nothing stale: no second warm-up child
+    assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm2.log") is not None
+    assert not (tmp_path / "warm2.log").exists()
+    # a module of the manifest newer than its byte-code (or without any) -> warmed again
+    manifest = next(prefix.glob("manifest-*.txt"))
+    src = tmp_path / "newer.py"
+    src.write_text("")
+    manifest.write_text(manifest.read_text() + f"\n{src}\t{tmp_path / 'no.pyc'}")
+    warmed = []
+    monkeypatch.setattr(launcher.subprocess, "run", lambda argv, **kw: warmed.append(argv))
+    assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm3.log") is not None
+    assert warmed and warmed[0][-1] == str(manifest)
+    monkeypatch.undo()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    monkeypatch.delenv("PYTHONPYCACHEPREFIX", raising=False)
     os.chmod(prefix, 0o777)                               # a cache others could write to is never used
     assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log") is None
     assert runtime_src.exists()
