@@ -226,6 +226,7 @@ class _ChildSampler:
         self.cpu: dict[int, float] = {}
         self.rss: dict[int, int] = {}
         self.role: dict[int, str] = {}
+        self.series: dict[int, list[tuple[float, float]]] = {}   # pid -> [(Unix time, CPU s so far)]
         self.stop = threading.Event()
         self.th = threading.Thread(target=self._run, daemon=True)
 
@@ -236,6 +237,7 @@ class _ChildSampler:
                     with c.oneshot():
                         ct = c.cpu_times()
                         self.cpu[c.pid] = ct.user + ct.system
+                        self.series.setdefault(c.pid, []).append((time.time(), self.cpu[c.pid]))
                         self.rss[c.pid] = max(self.rss.get(c.pid, 0), c.memory_info().rss)
                         if c.pid not in self.role:
                             cmd = " ".join(c.cmdline())
@@ -253,6 +255,14 @@ class _ChildSampler:
     def __exit__(self, *exc) -> None:
         self.stop.set()
         self.th.join()
+
+    def cpu_between(self, pid: int, t0: float, t1: float) -> float:
+        """CPU seconds ``pid`` spent between Unix times t0 and t1, interpolated between samples."""
+        ser = self.series.get(pid, [])
+        if not ser:
+            return 0.0
+        ts, cs = np.array([t for t, _ in ser]), np.array([c for _, c in ser])
+        return float(np.interp(t1, ts, cs) - np.interp(t0, ts, cs))
 
     def by_role(self) -> dict:
         out: dict = {}
@@ -308,23 +318,56 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
            "wall_total_s": t1 - t0, "partial": bool(metrics.get("partial")), "roles": roles,
            "realtime_factor_total": sim_s / (t1 - t0)}
     if first_step["t"] is not None:
-        rec["wall_flight_s"] = t1 - first_step["t"]
-        rec["realtime_factor_flight"] = sim_s / max(t1 - first_step["t"], 1e-9)
+        rec["wall_start_up_s"] = first_step["t"] - t0
     pair_cpu = sum(roles.get(r, {}).get("cpu_s", 0.0) for r in ("mock", "controller"))
     pair_rss = sum(roles.get(r, {}).get("peak_rss_mb_sum", 0.0) for r in ("mock", "controller"))
     rec.update(cpu_s_per_pair=pair_cpu / n, peak_rss_mb_per_pair=pair_rss / n,
                cpu_s_per_pair_per_sim_s=pair_cpu / n / sim_s)
-    if first_step["t"] is not None:    # flight only: CPU after the first control step (0.25 s sampling)
-        flight = sum(samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
-                     for pid, role in samp.role.items() if role in ("mock", "controller"))
-        rec.update(cpu_s_per_pair_flight=flight / n, cpu_ms_per_pair_step_flight=flight / n / steps * 1e3)
-        by_role: dict[str, float] = {}
-        for pid, role in samp.role.items():
-            by_role[role] = by_role.get(role, 0.0) + samp.cpu.get(pid, 0.0) - first_step["cpu"].get(pid, 0.0)
-        # flight CPU per step of each role summed over its processes (the world and the router are serial or shared)
-        rec["cpu_ms_per_step_flight_by_role"] = {r: c / steps * 1e3 for r, c in sorted(by_role.items())}
+    rec.update(_flight_window(out_dir, samp, n))
     rec["load_after"] = _load()
     return rec
+
+
+def _flight_window(out_dir: Path, samp: _ChildSampler, n: int, skip_steps: int = 2) -> dict:
+    """The flight itself, from controller 0's step records (``wall_s``, ``time_s``,
+    ``timing.process_cpu_s``): simulated seconds per wall second between its step ``skip_steps``
+    and its last step (start-up, the first steps and the shutdown are outside), the controllers'
+    CPU over their own records' window (exact) and the other roles' CPU over controller 0's window
+    (psutil samples, interpolated)."""
+    from mfg_swarm.flightlog import read_controller_log
+
+    def steps_of(i: int) -> list[dict]:
+        try:
+            return [r for r in read_controller_log(out_dir / "controllers" / f"controller{i}.jsonl").steps
+                    if "wall_s" in r and "process_cpu_s" in r.get("timing", {})]
+        except OSError:
+            return []
+
+    s0 = steps_of(0)
+    if len(s0) < skip_steps + 2:
+        return {}
+    a, b = s0[skip_steps], s0[-1]
+    k = b["step"] - a["step"]
+    out = {"flight_steps": k, "wall_flight_s": b["wall_s"] - a["wall_s"],
+           "realtime_factor_flight": (b["time_s"] - a["time_s"]) / max(b["wall_s"] - a["wall_s"], 1e-9)}
+    by_role: dict[str, float] = {}
+    for pid, role in samp.role.items():
+        if role != "controller":
+            by_role[role] = by_role.get(role, 0.0) + samp.cpu_between(pid, a["wall_s"], b["wall_s"])
+    ctl, counted = 0.0, 0
+    for i in range(n):
+        recs = {r["step"]: r for r in steps_of(i)}
+        if a["step"] in recs and b["step"] in recs:
+            ctl += recs[b["step"]]["timing"]["process_cpu_s"] - recs[a["step"]]["timing"]["process_cpu_s"]
+            counted += 1
+    if counted < n:        # a controller without both records: its CPU is unknown, so is the sum
+        out["controllers_without_window"] = n - counted
+        return out
+    by_role["controller"] = ctl
+    # CPU per step of each role summed over its processes (the world and the router are serial or shared)
+    out["cpu_ms_per_step_flight_by_role"] = {r: c / k * 1e3 for r, c in sorted(by_role.items())}
+    out["cpu_ms_per_pair_step_flight"] = (ctl + by_role.get("mock", 0.0)) / n / k * 1e3
+    return out
 
 
 def bench_swarm(out: Path, quick: bool = False) -> list[dict]:
@@ -426,10 +469,11 @@ def format_table(res: dict) -> str:
                  + (f"; exponent {pm['exponent']:.2f}" if pm["exponent"] is not None else ""))
     if "swarm" in res:
         L.append("\nProcess swarm, lockstep, default preset MFG (sim s / wall s; per vehicle pair = mock + controller)")
-        L.append(f"{'N':>4s} {'steps':>6s} {'x real (flight)':>16s} {'x real (total)':>15s} {'CPU s/pair':>11s} {'CPU/pair/sim s':>15s} "
-                 f"{'flight CPU ms/pair/step':>24s} {'peak MB/pair':>13s}")
+        L.append(f"{'N':>4s} {'steps':>6s} {'x real (flight)':>16s} {'start-up s':>11s} {'x real (total)':>15s} {'CPU s/pair':>11s} "
+                 f"{'CPU/pair/sim s':>15s} {'flight CPU ms/pair/step':>24s} {'peak MB/pair':>13s}")
         for r in res["swarm"]:
-            L.append(f"{r['n']:4d} {r['steps']:6d} {r.get('realtime_factor_flight', float('nan')):16.2f} {r['realtime_factor_total']:15.2f} "
+            L.append(f"{r['n']:4d} {r['steps']:6d} {r.get('realtime_factor_flight', float('nan')):16.2f} "
+                     f"{r.get('wall_start_up_s', float('nan')):11.1f} {r['realtime_factor_total']:15.2f} "
                      f"{r['cpu_s_per_pair']:11.2f} {r['cpu_s_per_pair_per_sim_s']:15.3f} {r.get('cpu_ms_per_pair_step_flight', float('nan')):24.1f} "
                      f"{r['peak_rss_mb_per_pair']:13.0f}" + (" PARTIAL" if r["partial"] else ""))
     if "latency" in res:
