@@ -370,12 +370,33 @@ def _flight_window(out_dir: Path, samp: _ChildSampler, n: int, skip_steps: int =
     return out
 
 
-def bench_swarm(out: Path, quick: bool = False) -> list[dict]:
+_SWARM_SPREAD_KEYS = ("realtime_factor_flight", "cpu_ms_per_pair_step_flight", "wall_start_up_s", "realtime_factor_total")
+
+
+def _swarm_summary(reps: list[dict]) -> dict:
+    """The last repeat's record with each of _SWARM_SPREAD_KEYS replaced by the median over
+    the repeats, plus KEY_min / KEY_max and ``repeats`` (every repeat is kept in ``runs``)."""
+    rec = dict(reps[-1])
+    for key in _SWARM_SPREAD_KEYS:
+        vals = [r[key] for r in reps if r.get(key) is not None]
+        if vals:
+            rec.update({key: float(np.median(vals)), f"{key}_min": min(vals), f"{key}_max": max(vals)})
+    rec["repeats"] = len(reps)
+    if len(reps) > 1:
+        rec["runs"] = [{k: r.get(k) for k in (*_SWARM_SPREAD_KEYS, "load_before", "partial")} for r in reps]
+    return rec
+
+
+def bench_swarm(out: Path, quick: bool = False, repeats: int | None = None) -> list[dict]:
+    """Lockstep process swarms, N = 4, 9, 25, 49, 81 (quick: 4, 9); ``repeats`` runs (default
+    3, quick 1) for N <= 25, one for the larger ones (start-up alone takes minutes there)."""
     ns = (4, 9) if quick else (4, 9, 25, 49, 81)
     steps = 20 if quick else 60          # 30 simulated s at dt = 0.5 s
+    repeats = repeats or (1 if quick else 3)
     res = []
     for n in ns:
-        res.append(_swarm_point(n, steps, True, out / f"swarm-n{n}"))
+        reps = [_swarm_point(n, steps, True, out / f"swarm-n{n}-{r}") for r in range(repeats if n <= 25 else 1)]
+        res.append(_swarm_summary(reps))
     return res
 
 
@@ -472,10 +493,14 @@ def format_table(res: dict) -> str:
         L.append(f"{'N':>4s} {'steps':>6s} {'x real (flight)':>16s} {'start-up s':>11s} {'x real (total)':>15s} {'CPU s/pair':>11s} "
                  f"{'CPU/pair/sim s':>15s} {'flight CPU ms/pair/step':>24s} {'peak MB/pair':>13s}")
         for r in res["swarm"]:
+            spread = (f"  (x real flight {r['realtime_factor_flight_min']:.2f}-{r['realtime_factor_flight_max']:.2f}, "
+                      f"CPU {r['cpu_ms_per_pair_step_flight_min']:.1f}-{r['cpu_ms_per_pair_step_flight_max']:.1f}, "
+                      f"{r['repeats']} runs)" if r.get("repeats", 1) > 1 and "realtime_factor_flight_min" in r
+                      and "cpu_ms_per_pair_step_flight_min" in r else "")
             L.append(f"{r['n']:4d} {r['steps']:6d} {r.get('realtime_factor_flight', float('nan')):16.2f} "
                      f"{r.get('wall_start_up_s', float('nan')):11.1f} {r['realtime_factor_total']:15.2f} "
                      f"{r['cpu_s_per_pair']:11.2f} {r['cpu_s_per_pair_per_sim_s']:15.3f} {r.get('cpu_ms_per_pair_step_flight', float('nan')):24.1f} "
-                     f"{r['peak_rss_mb_per_pair']:13.0f}" + (" PARTIAL" if r["partial"] else ""))
+                     f"{r['peak_rss_mb_per_pair']:13.0f}" + (" PARTIAL" if r["partial"] else "") + spread)
     if "latency" in res:
         la = res["latency"]["latency"]
         L.append(f"\nTelemetry-to-setpoint latency, real time, N = {res['latency']['n_vehicles']}: "

@@ -35,3 +35,14 @@ def test_unknown_section_is_refused(tmp_path):
     with pytest.raises(ValueError, match="unknown bench sections"):
         run_bench(tmp_path, quick=True, only=("nope",))
     assert "latency" in SECTIONS
+
+
+def test_swarm_repeats_are_summarised_as_median_and_range():
+    from mfg_swarm.bench import _swarm_summary
+
+    reps = [{"n": 25, "realtime_factor_flight": x, "cpu_ms_per_pair_step_flight": c, "wall_start_up_s": 40.0,
+             "realtime_factor_total": 0.5, "load_before": [1.0], "partial": False} for x, c in ((5.0, 7.0), (6.0, 6.5), (4.0, 8.0))]
+    rec = _swarm_summary(reps)
+    assert (rec["realtime_factor_flight"], rec["realtime_factor_flight_min"], rec["realtime_factor_flight_max"]) == (5.0, 4.0, 6.0)
+    assert (rec["cpu_ms_per_pair_step_flight"], rec["repeats"], len(rec["runs"])) == (7.0, 3, 3)
+    assert _swarm_summary(reps[:1])["repeats"] == 1 and "runs" not in _swarm_summary(reps[:1])
