@@ -207,13 +207,47 @@ class VehicleLink:
 
     def _on_messages(self, received: list[Received]) -> None:
         """One datagram's messages: filtered, then stored under one lock acquisition with one
-        wake-up of the waiters (a traffic set of N reports wakes a waiting control loop once)."""
-        kept = [r.msg for r in received if self._accept(r)]
+        wake-up of the waiters (a traffic set of N reports wakes a waiting control loop once).
+
+        The ADSB_VEHICLE reports of a traffic set (the bulk of a lockstep step's datagram) take
+        a shorter path with the same effect as ``_accept`` and ``_store``: on an unsigned link
+        only the sender is checked, the set's tag is parsed once per callsign, and
+        ``_latest[AdsbVehicle]`` is set once, to the last report kept."""
+        kept = []
+        signing = self.port.signing is not None
+        target = self.target_system
+        for r in received:
+            msg = r.msg
+            if type(msg) is AdsbVehicle and not signing:
+                if r.src_system == target:
+                    kept.append(msg)
+                else:
+                    self.n_ignored_other_system += 1
+            elif self._accept(r):
+                kept.append(msg)
         if not kept:
             return
         with self._cond:
+            traffic = self._traffic
+            last_report = None
+            callsign = tag = None
             for msg in kept:
-                self._store(msg)
+                if type(msg) is not AdsbVehicle:
+                    self._store(msg)
+                    continue
+                last_report = msg
+                if msg.callsign != callsign:
+                    callsign = msg.callsign
+                    tag = parse_traffic_tag(callsign)
+                if tag is None:
+                    continue        # traffic that is not part of a tagged set (e.g. real ADS-B): not the sensor
+                reports = traffic.get(tag)
+                if reports is None:
+                    self._on_traffic(msg)   # a new set: made and the oldest ones dropped there
+                else:
+                    reports[msg.icao_address] = msg
+            if last_report is not None:
+                self._latest[AdsbVehicle] = last_report
             self._cond.notify_all()
 
     def _accept(self, r: Received) -> bool:
