@@ -24,6 +24,7 @@ import collections
 import dataclasses
 import logging
 import math
+import operator
 import threading
 import time
 from typing import Callable, TypeVar
@@ -84,6 +85,8 @@ MAX_PARAMS = 4096
 """Most parameter names a link keeps (a forged PARAM_VALUE flood must not grow it forever)."""
 
 M = TypeVar("M", bound=Message)
+
+_BY_ICAO = operator.attrgetter("icao_address")
 
 
 class VehicleLink:
@@ -316,7 +319,7 @@ class VehicleLink:
         reports = self._traffic.get(tag, {})
         if len(reports) < marker.value:
             return None
-        return sorted(reports.values(), key=lambda r: r.icao_address)
+        return sorted(reports.values(), key=_BY_ICAO)
 
     def has_traffic_sensor(self) -> bool:
         """True once the vehicle has sent a traffic-set marker: it has a proximity sensor."""

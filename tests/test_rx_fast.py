@@ -238,3 +238,32 @@ def test_link_stores_a_datagram_as_the_per_message_path_does(signing):
     finally:
         for link in links:
             link.close()
+
+
+def test_adsb_states_equal_the_array_conversion_bit_for_bit():
+    """Given traffic sets of 1..60 reports with any 32-bit wire values (headings past 35999,
+    zero and maximal speeds, latitudes/longitudes at the int32 limits), in any order, adsb_states
+    gives the ids and states of the array conversion traffic_to_local_ned, bit for bit."""
+    import numpy as np
+
+    from mavlink_bridge.adsb import adsb_states, home_e7, traffic_to_local_ned
+
+    rng = random.Random(5)
+    for trial in range(150):
+        home = rng.choice([(47.397742, 8.545594), (-33.9, 151.2), (0.0, -179.9999999), (89.9, 0.0)])
+        h_lat, h_lon = home_e7(home)
+        reports = []
+        for icao in rng.sample(range(1, 5000), rng.randint(1, 60)):
+            def near(h):
+                return rng.choice([h + rng.randrange(-20000, 20000), -(2**31), 2**31 - 1, h, rng.randrange(-(2**31), 2**31)])
+            reports.append(AdsbVehicle(rng.choice([icao, 2**32 - 1 - icao]), near(h_lat), near(h_lon),
+                                       heading_cdeg=rng.choice([0, 35999, 36000, 65535, rng.randrange(65536)]),
+                                       hor_velocity_cm_s=rng.choice([0, 1, 65535, rng.randrange(65536)])))
+        ids, states = adsb_states(reports, home)
+        ref = sorted(reports, key=lambda r: r.icao_address)
+        wire = np.array([(r.icao_address, r.lat_e7, r.lon_e7, r.hor_velocity_cm_s, r.heading_cdeg) for r in ref], dtype=np.int64)
+        ref_states = traffic_to_local_ned(wire[:, 1], wire[:, 2], wire[:, 3], wire[:, 4], h_lat, h_lon)
+        assert ids.dtype == np.int64 and states.dtype == np.float64 and states.shape == ref_states.shape
+        assert ids.tobytes() == (wire[:, 0] - 1).tobytes() and states.tobytes() == ref_states.tobytes()
+    ids, states = adsb_states([], (47.4, 8.5))
+    assert ids.shape == (0,) and states.shape == (0, 4) and ids.dtype == np.int64
