@@ -209,49 +209,48 @@ class VehicleLink:
             self.rx_cpu_s = time.thread_time()
 
     def _on_messages(self, received: list[Received]) -> None:
-        """One datagram's messages: filtered, then stored under one lock acquisition with one
+        """One datagram's messages: filtered and stored under one lock acquisition with one
         wake-up of the waiters (a traffic set of N reports wakes a waiting control loop once).
 
         The ADSB_VEHICLE reports of a traffic set (the bulk of a lockstep step's datagram) take
         a shorter path with the same effect as ``_accept`` and ``_store``: on an unsigned link
-        only the sender is checked, the set's tag is parsed once per callsign, and
-        ``_latest[AdsbVehicle]`` is set once, to the last report kept."""
-        kept = []
+        only the sender is checked, the set's tag is parsed and its set looked up once per run
+        of equal callsigns, and ``_latest[AdsbVehicle]`` is set once, to the last report kept."""
         signing = self.port.signing is not None
         target = self.target_system
-        for r in received:
-            msg = r.msg
-            if type(msg) is AdsbVehicle and not signing:
-                if r.src_system == target:
-                    kept.append(msg)
-                else:
-                    self.n_ignored_other_system += 1
-            elif self._accept(r):
-                kept.append(msg)
-        if not kept:
-            return
+        kept = False
         with self._cond:
             traffic = self._traffic
             last_report = None
-            callsign = tag = None
-            for msg in kept:
-                if type(msg) is not AdsbVehicle:
-                    self._store(msg)
+            callsign = tag = reports = None
+            for r in received:
+                msg = r.msg
+                if type(msg) is not AdsbVehicle or signing:
+                    if self._accept(r):
+                        kept = True
+                        self._store(msg)
+                        callsign = None         # a marker may have made or dropped a set: look it up again
                     continue
+                if r.src_system != target:
+                    self.n_ignored_other_system += 1
+                    continue
+                kept = True
                 last_report = msg
                 if msg.callsign != callsign:
                     callsign = msg.callsign
                     tag = parse_traffic_tag(callsign)
+                    reports = None if tag is None else traffic.get(tag)
                 if tag is None:
-                    continue        # traffic that is not part of a tagged set (e.g. real ADS-B): not the sensor
-                reports = traffic.get(tag)
+                    continue                    # traffic that is not part of a tagged set (e.g. real ADS-B): not the sensor
                 if reports is None:
-                    self._on_traffic(msg)   # a new set: made and the oldest ones dropped there
+                    self._on_traffic(msg)       # a new set: made, and the oldest ones dropped, there
+                    reports = traffic.get(tag)
                 else:
                     reports[msg.icao_address] = msg
             if last_report is not None:
                 self._latest[AdsbVehicle] = last_report
-            self._cond.notify_all()
+            if kept:
+                self._cond.notify_all()
 
     def _accept(self, r: Received) -> bool:
         """Whether a received message is used (the checks that need no lock)."""
