@@ -573,6 +573,16 @@ def _message_builder(msg_id: int, fields: Callable, dec: Callable) -> Callable:
             return msg
         return build
 
+    if wire == ("time_boot_ms", "lat", "lon", "alt", "relative_alt", "vx", "vy", "vz", "hdg") and msg_id == MAVLINK_MSG_ID["GLOBAL_POSITION_INT"]:
+        def build(v, now, _cls=GlobalPositionInt):      # the scaling of _DECODERS["GLOBAL_POSITION_INT"], same expressions
+            t, lat, lon, alt, rel, vx, vy, vz, hdg = v
+            msg = _new_object(_cls)
+            _set_attr(msg, "__dict__", {"time_boot_ms": t, "lat_deg": lat * 1e-7, "lon_deg": lon * 1e-7, "alt_amsl_m": alt * 1e-3,
+                                        "relative_alt_m": rel * 1e-3, "vx_m_s": vx * 1e-2, "vy_m_s": vy * 1e-2, "vz_m_s": vz * 1e-2,
+                                        "heading_deg": None if hdg == 65535 else hdg * 1e-2, "received_monotonic_s": now})
+            return msg
+        return build
+
     def build(v, now):
         msg = dec(fields(v))
         # built just now and not shared yet: stamped in place (replace() would re-run __init__)

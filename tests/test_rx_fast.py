@@ -128,11 +128,17 @@ def test_adsb_vehicle_frames_decode_as_pymavlink_bit_for_bit():
         LocalPositionNed(1500, -0.0, 1e-45, math.inf, -math.inf, math.nan, 3.4e38),
         LocalPositionNed(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), Attitude(1500, 0.1, -0.2, 0.0, -0.0, 1e-39, 7.0),
         GlobalPositionInt(1500, 47.4, 8.5, 498.0, 10.0, 1.0, -1.0, 0.0, None), Heartbeat())]
+    gpi = F.payload_struct(33)
+    for k in range(40):                             # GLOBAL_POSITION_INT: scaled on decode, heading 65535 = unknown
+        others.append(F.build_v2(33, _trim(gpi.pack(rng.randrange(2**32), rng.randrange(-(2**31), 2**31), rng.randrange(-(2**31), 2**31),
+                                                    rng.randrange(-(2**31), 2**31), rng.choice([0, -1, 2**31 - 1, rng.randrange(-(2**31), 2**31)]), rng.randrange(-(2**15), 2**15),
+                                                    rng.choice([0, -(2**15), 2**15 - 1, rng.randrange(-(2**15), 2**15)]), rng.randrange(-(2**15), 2**15),
+                                                    rng.choice([0, 35999, 65535, 65534, rng.randrange(65536)])))))
     nan_payload = struct.pack("<Iffffff", 5, *(struct.unpack("<f", struct.pack("<I", 0x7FC00001))[0] for _ in range(6)))
     others.append(F.build_v2(32, nan_payload))      # LOCAL_POSITION_NED of NaNs with a payload
     for fr in others:
         _same(C._decode_fast(fr, 1.0), _reference(fr, 1.0))
-    for trial in range(200):
+    for trial in range(100):
         sel = rng.sample(frames + others, rng.randint(1, 30))
         data = b"".join(sel)
         fast = C._decode_fast(data, 7.25)
