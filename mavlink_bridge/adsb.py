@@ -24,6 +24,7 @@ depend on the array length.
 from __future__ import annotations
 
 import math
+import operator
 
 import numpy as np
 
@@ -136,11 +137,31 @@ def traffic_to_local_ned(lat_e7, lon_e7, hor_velocity_cm_s, heading_cdeg, home_l
 
 
 def adsb_states(reports: list[AdsbVehicle], home: HomePosition | tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """(vehicle ids (m,), local NED states (m, 4)) of a traffic set, sorted by vehicle id."""
-    reports = sorted(reports, key=lambda r: r.icao_address)
+    """(vehicle ids (m,), local NED states (m, 4)) of a traffic set, sorted by vehicle id.
+
+    The states are ``traffic_to_local_ned`` of the reports' wire values. A sensor's set (a few
+    dozen reports, every control step) is converted with scalar float arithmetic, which is
+    the same IEEE operations on the same values as the array version (integer differences
+    converted exactly, then one multiplication; speed / 100.0 times the tabled cos/sin),
+    without its dozen small-array calls; larger sets use the array version. (Same bits for
+    any values within +-2**62; wire values are 32-bit. The array version's int64 would
+    raise or wrap beyond that.)"""
+    reports = sorted(reports, key=_BY_ICAO)
     h_lat, h_lon = home_e7(home)
+    m = len(reports)
+    if 0 < m < _TRIG_TABLE_FROM:
+        m_n, m_e = metres_per_e7(h_lat)
+        rows = []
+        for r in reports:
+            c, s = _cos_sin_cdeg(r.heading_cdeg % 36000)
+            speed = r.hor_velocity_cm_s / 100.0
+            rows.append((float(r.lat_e7 - h_lat) * m_n, float(r.lon_e7 - h_lon) * m_e, speed * c, speed * s))
+        return np.array([r.icao_address - 1 for r in reports], dtype=np.int64), np.array(rows, dtype=np.float64)
     wire = np.array([(r.icao_address, r.lat_e7, r.lon_e7, r.hor_velocity_cm_s, r.heading_cdeg) for r in reports],
                     dtype=np.int64).reshape(-1, 5)
     ids = wire[:, 0] - 1                       # vehicle_id_of_icao
     states = traffic_to_local_ned(wire[:, 1], wire[:, 2], wire[:, 3], wire[:, 4], h_lat, h_lon)
     return ids, states
+
+
+_BY_ICAO = operator.attrgetter("icao_address")

@@ -24,6 +24,7 @@ import collections
 import dataclasses
 import logging
 import math
+import operator
 import threading
 import time
 from typing import Callable, TypeVar
@@ -84,6 +85,8 @@ MAX_PARAMS = 4096
 """Most parameter names a link keeps (a forged PARAM_VALUE flood must not grow it forever)."""
 
 M = TypeVar("M", bound=Message)
+
+_BY_ICAO = operator.attrgetter("icao_address")
 
 
 class VehicleLink:
@@ -206,15 +209,48 @@ class VehicleLink:
             self.rx_cpu_s = time.thread_time()
 
     def _on_messages(self, received: list[Received]) -> None:
-        """One datagram's messages: filtered, then stored under one lock acquisition with one
-        wake-up of the waiters (a traffic set of N reports wakes a waiting control loop once)."""
-        kept = [r.msg for r in received if self._accept(r)]
-        if not kept:
-            return
+        """One datagram's messages: filtered and stored under one lock acquisition with one
+        wake-up of the waiters (a traffic set of N reports wakes a waiting control loop once).
+
+        The ADSB_VEHICLE reports of a traffic set (the bulk of a lockstep step's datagram) take
+        a shorter path with the same effect as ``_accept`` and ``_store``: on an unsigned link
+        only the sender is checked, the set's tag is parsed and its set looked up once per run
+        of equal callsigns, and ``_latest[AdsbVehicle]`` is set once, to the last report kept."""
+        signing = self.port.signing is not None
+        target = self.target_system
+        kept = False
         with self._cond:
-            for msg in kept:
-                self._store(msg)
-            self._cond.notify_all()
+            traffic = self._traffic
+            last_report = None
+            callsign = tag = reports = None
+            for r in received:
+                msg = r.msg
+                if type(msg) is not AdsbVehicle or signing:
+                    if self._accept(r):
+                        kept = True
+                        self._store(msg)
+                        callsign = None         # a marker may have made or dropped a set: look it up again
+                    continue
+                if r.src_system != target:
+                    self.n_ignored_other_system += 1
+                    continue
+                kept = True
+                last_report = msg
+                if msg.callsign != callsign:
+                    callsign = msg.callsign
+                    tag = parse_traffic_tag(callsign)
+                    reports = None if tag is None else traffic.get(tag)
+                if tag is None:
+                    continue                    # traffic that is not part of a tagged set (e.g. real ADS-B): not the sensor
+                if reports is None:
+                    self._on_traffic(msg)       # a new set: made, and the oldest ones dropped, there
+                    reports = traffic.get(tag)
+                else:
+                    reports[msg.icao_address] = msg
+            if last_report is not None:
+                self._latest[AdsbVehicle] = last_report
+            if kept:
+                self._cond.notify_all()
 
     def _accept(self, r: Received) -> bool:
         """Whether a received message is used (the checks that need no lock)."""
@@ -282,7 +318,7 @@ class VehicleLink:
         reports = self._traffic.get(tag, {})
         if len(reports) < marker.value:
             return None
-        return sorted(reports.values(), key=lambda r: r.icao_address)
+        return sorted(reports.values(), key=_BY_ICAO)
 
     def has_traffic_sensor(self) -> bool:
         """True once the vehicle has sent a traffic-set marker: it has a proximity sensor."""
