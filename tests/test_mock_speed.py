@@ -123,3 +123,55 @@ def test_single_vehicle_plant_step_equals_the_vectorised_step_bit_for_bit():
         assert fast.time_s == ref.time_s
     with pytest.raises(ValueError, match="finite"):
         fast.step(np.array([[math.nan, 0.0]]), 0.5)
+
+
+def _setpoint_acc_numpy_reference(sp, s):
+    """MockVehicle._setpoint_acc_m_s2 as it was written with numpy (the reference)."""
+    import numpy as np
+
+    from mavlink_bridge import PositionTargetTypeMask as F
+
+    m = sp.type_mask
+
+    def axes(bits, values):
+        used = np.array([not (m & b) for b in bits])
+        return used, np.where(used, np.array(values, dtype=np.float64), 0.0) if used.any() else np.zeros(2)
+
+    use_acc, acc_sp = axes((F.AX_IGNORE, F.AY_IGNORE), (sp.afx_m_s2, sp.afy_m_s2))
+    use_vel, vel_sp = axes((F.VX_IGNORE, F.VY_IGNORE), (sp.vx_m_s, sp.vy_m_s))
+    use_pos, pos_sp = axes((F.X_IGNORE, F.Y_IGNORE), (sp.x_m, sp.y_m))
+    acc = acc_sp.copy()
+    if use_pos.any():
+        acc += np.where(use_pos, 1.0 * (pos_sp - s[0:2]), 0.0) + 2.0 * (vel_sp - s[2:4])
+    elif use_vel.any():
+        acc += 2.0 * (vel_sp - s[2:4])
+    return acc
+
+
+def test_setpoint_acceleration_equals_the_numpy_formula_bit_for_bit():
+    """Every combination of used/ignored x, y, vx, vy, afx, afy (NaN in ignored fields, signed
+    zeros, random values and states): the float code gives the numpy formula's bits."""
+    import itertools
+
+    import numpy as np
+
+    from mavlink_bridge import SetPositionTargetLocalNed
+    from mock_vehicle.vehicle import MockVehicle, VehicleConfig
+
+    v = MockVehicle(VehicleConfig(instance=2, initial_pos_m=(3.0, -1.0)), lambda m, p: None)
+    rng = np.random.default_rng(4)
+    bits = (1, 2, 8, 16, 64, 128)
+    n = 0
+    for used in itertools.product((False, True), repeat=6):
+        mask = 0b1100_0010_0100 | sum(b for b, u in zip(bits, used) if not u)     # z, vz, az, yaw, yaw rate ignored
+        for _ in range(20):
+            vals = [float(x) for x in rng.normal(0.0, 30.0, 6)]
+            vals = [rng.choice([x, -0.0, 0.0]) if u else rng.choice([x, math.nan, math.inf]) for x, u in zip(vals, used)]
+            v.plant.states = np.array([list(rng.normal(0.0, 20.0, 4) * rng.choice([0.0, 1.0]))])
+            sp = SetPositionTargetLocalNed(0, 3, 1, type_mask=mask, x_m=vals[0], y_m=vals[1], vx_m_s=vals[2], vy_m_s=vals[3],
+                                           afx_m_s2=vals[4], afy_m_s2=vals[5])
+            v.setpoint = sp
+            got = v._setpoint_acc_m_s2()
+            assert got.shape == (2,) and got.tobytes() == _setpoint_acc_numpy_reference(sp, v.state).tobytes(), (used, vals)
+            n += 1
+    assert n == 64 * 20
