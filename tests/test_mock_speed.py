@@ -175,3 +175,41 @@ def test_setpoint_acceleration_equals_the_numpy_formula_bit_for_bit():
             assert got.shape == (2,) and got.tobytes() == _setpoint_acc_numpy_reference(sp, v.state).tobytes(), (used, vals)
             n += 1
     assert n == 64 * 20
+
+
+def test_traffic_reports_equal_the_numpy_encoding():
+    """traffic_reports' per-vehicle scalar encoding gives the messages the numpy encode_traffic
+    gives (random sets, rest, exact halves, the speed cap, values beyond the scalar range);
+    non-finite states still raise."""
+    import numpy as np
+
+    from mavlink_bridge.adsb import ADSB_FLAGS_EMULATED, home_e7, icao_of_vehicle_id, metres_per_e7, traffic_tag
+    from mock_vehicle.proximity import DEFAULT_HOME_DEG, encode_traffic, traffic_reports
+
+    def reference(ids, states, t, home, alt):
+        enc = encode_traffic(states, home)
+        return [AdsbVehicle(icao_address=icao_of_vehicle_id(int(v)), lat_e7=int(e[0]), lon_e7=int(e[1]), altitude_type=1,
+                            altitude_mm=int(round(alt * 1000.0)), heading_cdeg=int(e[3]), hor_velocity_cm_s=int(e[2]),
+                            ver_velocity_cm_s=0, callsign=traffic_tag(t), emitter_type=14, tslc_s=0, flags=ADSB_FLAGS_EMULATED,
+                            squawk=0) for v, e in zip(np.asarray(ids).reshape(-1).tolist(), enc)]
+
+    rng = np.random.default_rng(8)
+    m_n, m_e = metres_per_e7(home_e7(DEFAULT_HOME_DEG)[0])
+    special = np.array([[0.0, 0.0, 0.0, 0.0], [1.0, 2.0, 0.0, -0.0], [0.0, 0.0, 700.0, 1.0], [0.0, 0.0, -1.0, -1e-9],
+                        [2.5 * m_n, -0.5 * m_e, 0.005, 0.0], [0.0, 0.0, 0.015, 0.0], [-3.5 * m_n, 1.5 * m_e, -2.0, 3.0]])
+    for trial in range(60):
+        m = int(rng.integers(0, 25))
+        states = rng.normal(0.0, 1.0, (m, 4)) * [500.0, 500.0, 3.0, 3.0]
+        if trial % 3 == 0:
+            states = np.concatenate([states, special])
+        if trial % 10 == 1:
+            states = np.concatenate([states, [[1e16, 0.0, 0.0, 1.0]]])          # beyond the scalar range: numpy's path
+        states = states.astype(np.float32).astype(np.float64)                  # what a world answer carries
+        ids = rng.permutation(60)[: states.shape[0]]
+        home = DEFAULT_HOME_DEG if trial % 2 else (47.0 + rng.random(), 8.0 + rng.random())
+        got = traffic_reports(ids, states, 500 * trial, home, 498.0)
+        want = reference(ids, states, 500 * trial, home, 498.0)
+        assert got == want and [type(x) for x in got] == [type(x) for x in want]
+        assert [tuple(map(type, vars(g).values())) for g in got] == [tuple(map(type, vars(w).values())) for w in want]
+    with pytest.raises(ValueError, match="finite"):
+        traffic_reports(np.array([1]), np.array([[0.0, 0.0, math.nan, 1.0]]), 0)
