@@ -268,6 +268,7 @@ class MockVehicle:
         self._last_sp_sim_s = 0.0
         self._intervals_s = {k: (1.0 / hz if hz > 0 else math.inf) for k, hz in cfg.rates_hz.items()}
         self._next_due = {k: self._t0 for k in self._intervals_s}
+        self._update_telemetry_due()
         self._next_resend = self._t0
         self.n_steps_failsafe = 0
         # proximity sensor (docs/proximity.md): set by attach_world
@@ -457,6 +458,7 @@ class MockVehicle:
         else:
             self._intervals_s[kind] = max(interval_us * 1e-6, 1e-3)
         self._next_due[kind] = self._clock()
+        self._update_telemetry_due()
         return MavResult.ACCEPTED
 
     def _on_param(self, m, port) -> None:
@@ -675,15 +677,25 @@ class MockVehicle:
                     break
         self._periodic(now)
 
+    def _update_telemetry_due(self) -> None:
+        """``_telemetry_due``: when the next periodic telemetry message is due (the earliest
+        ``_next_due`` of the kinds ``_periodic`` sends on their own clock), kept up to date
+        wherever ``_next_due`` or ``_intervals_s`` change, so an idle tick costs one comparison."""
+        lockstep = self.cfg.lockstep
+        self._telemetry_due = min((self._next_due[k] for k, iv in self._intervals_s.items()
+                                   if iv != math.inf and not (lockstep and k in FAST_TELEMETRY)), default=math.inf)
+
     def _periodic(self, now: float) -> None:
         lockstep = self.cfg.lockstep
-        for kind, interval in self._intervals_s.items():
-            if interval == math.inf or now < self._next_due[kind]:
-                continue
-            if lockstep and kind in FAST_TELEMETRY:
-                continue  # in lockstep these follow the steps (plus the slow re-send below)
-            self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
-            self._send(self._telemetry(kind), None)
+        if now >= self._telemetry_due:
+            for kind, interval in self._intervals_s.items():
+                if interval == math.inf or now < self._next_due[kind]:
+                    continue
+                if lockstep and kind in FAST_TELEMETRY:
+                    continue  # in lockstep these follow the steps (plus the slow re-send below)
+                self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
+                self._send(self._telemetry(kind), None)
+            self._update_telemetry_due()
         self._world_tick(now)
         if lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
             self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
@@ -693,8 +705,7 @@ class MockVehicle:
         """Monotonic time of the next periodic event (for the I/O loop's select timeout): the
         loop sleeps until then or until a packet arrives, so an idle or lockstep vehicle does not
         spin. Every event ``tick`` acts on has its deadline here."""
-        t = min((self._next_due[k] for k, iv in self._intervals_s.items()
-                 if iv != math.inf and not (self.cfg.lockstep and k in FAST_TELEMETRY)), default=math.inf)
+        t = self._telemetry_due
         if not self.cfg.lockstep:
             t = min(t, self._t0 + self._phys_t_s + self.cfg.physics_dt_s)
             if self.mode == PX4_OFFBOARD:  # the offboard-loss failsafe, on time
