@@ -211,5 +211,10 @@ def test_traffic_reports_equal_the_numpy_encoding():
         want = reference(ids, states, 500 * trial, home, 498.0)
         assert got == want and [type(x) for x in got] == [type(x) for x in want]
         assert [tuple(map(type, vars(g).values())) for g in got] == [tuple(map(type, vars(w).values())) for w in want]
+        assert [list(vars(g)) for g in got] == [list(vars(w)) for w in want] and all(math.isnan(g.received_monotonic_s) for g in got)
+        assert [hash(g) for g in got] == [hash(w) for w in want] and [repr(g) for g in got] == [repr(w) for w in want]
     with pytest.raises(ValueError, match="finite"):
         traffic_reports(np.array([1]), np.array([[0.0, 0.0, math.nan, 1.0]]), 0)
+    from mock_vehicle import proximity
+
+    assert proximity._ADSB_DIRECT          # the fast construction is the one tested here
