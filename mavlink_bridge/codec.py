@@ -298,7 +298,8 @@ class MavCodec:
             trimmed = payload.rstrip(b"\x00") or payload[:1]     # MAVLink 2 trims trailing zeros, keeps one byte
             body = _LEN_SEQ_IDS.pack(len(trimmed), 0, 0, seq, self.source_system, self.source_component) + header_tail + trimmed
             tx.seq = (seq + 1) % 256
-            return b"\xfd" + body + _CRC.pack(_crc_x25(body, crc_extra_byte))
+            crc = _MCRF4XX(crc_extra_byte, _MCRF4XX(body, 0xFFFF)) if _MCRF4XX is not None else _crc_x25(body, crc_extra_byte)
+            return b"\xfd" + body + _CRC.pack(crc)
         try:
             enc = _ENCODERS[type(msg)]
         except KeyError:
