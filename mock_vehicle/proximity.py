@@ -103,12 +103,13 @@ def _encode_traffic_rows(states: np.ndarray, home_deg: tuple[float, float]) -> l
     m_n, m_e = metres_per_e7(h_lat)
     rows = []
     lim = _SCALAR_LIMIT
+    hypot, atan2, degrees = math.hypot, math.atan2, math.degrees
     for x, y, vx, vy in np.asarray(states, dtype=np.float64).reshape(-1, 4).tolist():
         if not (-lim < x < lim and -lim < y < lim and -lim < vx < lim and -lim < vy < lim):   # NaN fails too
             return encode_traffic(states, home_deg).tolist()
-        speed = math.hypot(vx, vy)
+        speed = hypot(vx, vy)
         rows.append((h_lat + round(x / m_n), h_lon + round(y / m_e), min(round(speed * 100.0), 65535),
-                     round(math.degrees(math.atan2(vy, vx)) * 100.0) % 36000 if speed > 0 else 0))
+                     round(degrees(atan2(vy, vx)) * 100.0) % 36000 if speed > 0 else 0))
     return rows
 
 
