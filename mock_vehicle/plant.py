@@ -231,6 +231,7 @@ class SwarmPlant:
         # are the same as a mock process's, which draws its 2 k per step unbuffered.
         self._noise = np.empty((n, 0))
         self._noise_pos = 0
+        self._single_cache: tuple | None = None   # _step_single: (params, dt_s, what it derives from them)
 
     @property
     def n(self) -> int:
@@ -285,13 +286,15 @@ class SwarmPlant:
         if scale >= 1.0:
             scale = 1.0
         ax, ay = ax * scale, ay * scale
-        k = self.params.substeps(dt_s)
-        h = dt_s / k
-        wind = self.params.wind
-        c0 = wind.c0_per_s
-        vox, voy = wind.v_o.tolist()
-        dW = (self._take_noise(k) * np.sqrt(h)).reshape(k, 1, 2)                # euler_maruyama_step's dW, per sub-step
-        diffusion = np.matmul(dW, wind.V_o.T).reshape(k, 2).tolist()
+        cached = self._single_cache
+        if cached is None or cached[0] is not self.params or cached[1] != dt_s:
+            wind = self.params.wind
+            k = self.params.substeps(dt_s)
+            cached = self._single_cache = (self.params, dt_s, k, dt_s / k, np.sqrt(dt_s / k), wind.c0_per_s,
+                                           *wind.v_o.tolist(), wind.V_o.T)
+        _, _, k, h, sqrt_h, c0, vox, voy, diffusion_t = cached
+        dW = (self._take_noise(k) * sqrt_h).reshape(k, 1, 2)                    # euler_maruyama_step's dW, per sub-step
+        diffusion = np.matmul(dW, diffusion_t).reshape(k, 2).tolist()
         x, y, vx, vy = self.states[0].tolist()
         for dvx, dvy in diffusion:                                              # euler_maruyama_step
             x, y, vx, vy = (x + vx * h, y + vy * h,
