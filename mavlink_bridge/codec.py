@@ -289,6 +289,17 @@ class MavCodec:
 
     def encode(self, msg: Message) -> bytes:
         """One MAVLink 2 packet carrying ``msg`` (sequence number advances)."""
+        typed = _TYPED_PACKERS.get(type(msg))
+        if typed is not None and self.signing is None:   # the hot types: no pymavlink object (_FAST_TYPED)
+            tx = self._tx
+            seq = tx.seq
+            pack, values, header_tail, crc_extra_byte = typed
+            payload = pack(*values(msg))
+            trimmed = payload.rstrip(b"\x00") or payload[:1]     # MAVLink 2 trims trailing zeros, keeps one byte
+            body = _LEN_SEQ_IDS.pack(len(trimmed), 0, 0, seq, self.source_system, self.source_component) + header_tail + trimmed
+            tx.seq = (seq + 1) % 256
+            crc = _MCRF4XX(crc_extra_byte, _MCRF4XX(body, 0xFFFF)) if _MCRF4XX is not None else _crc_x25(body, crc_extra_byte)
+            return b"\xfd" + body + _CRC.pack(crc)
         try:
             enc = _ENCODERS[type(msg)]
         except KeyError:
@@ -296,8 +307,6 @@ class MavCodec:
         if self.signing is not None:  # spec: timestamp = max(last + 1, now); pymavlink adds the + 1
             self._tx.signing.timestamp = max(self._tx.signing.timestamp, signing_timestamp_now())
             packet = bytes(enc(self._tx, msg).pack(self._tx))
-        elif type(msg) in _FAST_TYPED:
-            packet = _pack_typed(msg, self._tx.seq, self.source_system, self.source_component)
         else:
             m = enc(self._tx, msg)
             spec = _FAST_ENCODE.get(type(m).id)        # (the class constant: STATUSTEXT has a field named id)
@@ -482,26 +491,38 @@ def _encode_specs(names: tuple[str, ...]) -> dict[int, tuple]:
     return specs
 
 
+_I32_MIN, _I32_MAX, _I16_MIN, _I16_MAX = -(2**31), 2**31 - 1, -(2**15), 2**15 - 1
+
 _FAST_TYPED: dict[type, tuple[int, Callable]] = {
-    # the bulk of a lockstep step's traffic set: typed message -> payload values in wire order
-    # (what pymavlink's MAVLink_adsb_vehicle_message.pack passes to its struct), no pymavlink object
+    # what a vehicle sends every lockstep step (its traffic set, the marker, its telemetry): typed
+    # message -> payload values in wire order, exactly the arguments ``_ENCODERS`` gives pymavlink's
+    # ``*_encode`` as its ``pack`` passes them to the struct; no pymavlink object
     AdsbVehicle: (MAVLINK_MSG_ID["ADSB_VEHICLE"], lambda m: (
         m.icao_address & 0xFFFFFFFF, m.lat_e7, m.lon_e7, m.altitude_mm, m.heading_cdeg, m.hor_velocity_cm_s,
         m.ver_velocity_cm_s, m.flags, m.squawk, m.altitude_type, _s(m.callsign[:8]), m.emitter_type, m.tslc_s)),
+    NamedValueInt: (MAVLINK_MSG_ID["NAMED_VALUE_INT"], lambda m: (m.time_boot_ms & 0xFFFFFFFF, m.value, _s(m.name[:10]))),
+    LocalPositionNed: (MAVLINK_MSG_ID["LOCAL_POSITION_NED"], lambda m: (
+        m.time_boot_ms & 0xFFFFFFFF, m.x_m, m.y_m, m.z_m, m.vx_m_s, m.vy_m_s, m.vz_m_s)),
+    Attitude: (MAVLINK_MSG_ID["ATTITUDE"], lambda m: (
+        m.time_boot_ms & 0xFFFFFFFF, m.roll_rad, m.pitch_rad, m.yaw_rad, m.rollspeed_rad_s, m.pitchspeed_rad_s, m.yawspeed_rad_s)),
+    GlobalPositionInt: (MAVLINK_MSG_ID["GLOBAL_POSITION_INT"], lambda m: (
+        m.time_boot_ms & 0xFFFFFFFF,
+        _clip_i(m.lat_deg * 1e7, _I32_MIN, _I32_MAX),
+        _clip_i(m.lon_deg * 1e7, _I32_MIN, _I32_MAX),
+        _clip_i(m.alt_amsl_m * 1e3, _I32_MIN, _I32_MAX),
+        _clip_i(m.relative_alt_m * 1e3, _I32_MIN, _I32_MAX),
+        _clip_i(m.vx_m_s * 100, _I16_MIN, _I16_MAX),
+        _clip_i(m.vy_m_s * 100, _I16_MIN, _I16_MAX),
+        _clip_i(m.vz_m_s * 100, _I16_MIN, _I16_MAX),
+        65535 if m.heading_deg is None else _clip_i((m.heading_deg % 360.0) * 100, 0, 35999))),
+    Heartbeat: (MAVLINK_MSG_ID["HEARTBEAT"], lambda m: (
+        m.custom_mode & 0xFFFFFFFF, m.type, m.autopilot, m.base_mode & 0xFF, m.system_status, m.mavlink_version)),
 }
 
 
-def _pack_typed(msg: Message, seq: int, src_system: int, src_component: int) -> bytes:
-    msg_id, values = _FAST_TYPED[type(msg)]
-    unpacker, crc_extra_byte, _attrs = _FAST_ENCODE[msg_id]
-    return _frame(unpacker.pack(*values(msg)), msg_id, crc_extra_byte, seq, src_system, src_component)
-
-
 def _frame(payload: bytes, msg_id: int, crc_extra_byte: bytes, seq: int, src_system: int, src_component: int) -> bytes:
-    plen = len(payload)
-    while plen > 1 and payload[plen - 1] == 0:
-        plen -= 1
-    body = _HEADER_V2.pack(plen, 0, 0, seq, src_system, src_component, msg_id & 0xFFFF, msg_id >> 16) + payload[:plen]
+    trimmed = payload.rstrip(b"\x00") or payload[:1]    # trailing zero bytes trimmed, at least one kept
+    body = _HEADER_V2.pack(len(trimmed), 0, 0, seq, src_system, src_component, msg_id & 0xFFFF, msg_id >> 16) + trimmed
     return b"\xfd" + body + _CRC.pack(_crc_x25(body, crc_extra_byte))
 
 
@@ -521,6 +542,13 @@ _FAST = _fast_specs(("ADSB_VEHICLE", "NAMED_VALUE_INT", "LOCAL_POSITION_NED", "A
                      "HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION"))
 _FAST_ENCODE = _encode_specs(("ADSB_VEHICLE", "NAMED_VALUE_INT", "LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT",
                               "HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "SYS_STATUS", "EXTENDED_SYS_STATE"))
+_LEN_SEQ_IDS = struct.Struct("<BBBBBB")     # the header up to the message id: len, incompat, compat, seq, sysid, compid
+_TYPED_PACKERS: dict[type, tuple] = {
+    # typed message type -> (struct pack, wire-order values, message id bytes, CRC extra byte): what ``MavCodec.encode``
+    # frames itself (as ``_frame`` does)
+    t: (_FAST_ENCODE[msg_id][0].pack, values, struct.pack("<HB", msg_id & 0xFFFF, msg_id >> 16), _FAST_ENCODE[msg_id][1])
+    for t, (msg_id, values) in _FAST_TYPED.items()
+}
 
 
 def _crc_py(buf: bytes, crc: int) -> int:

@@ -95,21 +95,27 @@ class MavlinkPort:
             return []
         packets: list[bytes] = []
         with self._tx_lock:
-            chunk: list[bytes] = []
-            size = 0
-            for msg in msgs:
-                packet = self.codec.encode(msg)
-                packets.append(packet)
-                if not self.transport.is_datagram:
-                    self.transport.send(packet)
-                    continue
-                if chunk and size + len(packet) > self.MAX_DATAGRAM_BYTES:
-                    self.transport.send(b"".join(chunk))
-                    chunk, size = [], 0
-                chunk.append(packet)
-                size += len(packet)
-            if chunk:
-                self.transport.send(b"".join(chunk))
+            encode, transport = self.codec.encode, self.transport
+            if not transport.is_datagram:
+                for msg in msgs:
+                    packet = encode(msg)
+                    packets.append(packet)
+                    transport.send(packet)
+            else:
+                limit = self.MAX_DATAGRAM_BYTES
+                chunk: list[bytes] = []
+                size = 0
+                for msg in msgs:
+                    packet = encode(msg)
+                    packets.append(packet)
+                    n = len(packet)
+                    if chunk and size + n > limit:
+                        transport.send(b"".join(chunk))
+                        chunk, size = [], 0
+                    chunk.append(packet)
+                    size += n
+                if chunk:
+                    transport.send(b"".join(chunk))
             self.n_sent += len(packets)
         if self.tlog is not None:
             self.tlog.write_many(packets)

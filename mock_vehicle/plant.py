@@ -20,6 +20,7 @@ Shapes: ``states`` is ``(n_vehicles, 4)`` with columns ``[x_m, y_m, vx_m_s, vy_m
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -230,6 +231,7 @@ class SwarmPlant:
         # are the same as a mock process's, which draws its 2 k per step unbuffered.
         self._noise = np.empty((n, 0))
         self._noise_pos = 0
+        self._single_cache: tuple | None = None   # _step_single: (params, dt_s, what it derives from them)
 
     @property
     def n(self) -> int:
@@ -238,12 +240,27 @@ class SwarmPlant:
     def step(self, acc_m_s2: np.ndarray, dt_s: float) -> np.ndarray:
         """Advance every vehicle by ``dt_s`` holding ``acc_m_s2`` (n, 2). Returns the
         acceleration actually applied (after the airframe limit), (n, 2)."""
+        if self.n == 1:
+            return self._step_single(acc_m_s2, dt_s)
+        return self._step_vectorised(acc_m_s2, dt_s)
+
+    def _step_vectorised(self, acc_m_s2: np.ndarray, dt_s: float) -> np.ndarray:
         acc = np.asarray(acc_m_s2, dtype=float).reshape(self.n, 2)
         if not np.all(np.isfinite(acc)):
             raise ValueError("acceleration must be finite")
         acc = saturate_norm(acc, self.params.acc_limit_m_s2)
         k = self.params.substeps(dt_s)
         h = dt_s / k
+        noise = self._take_noise(k)
+        x = self.states
+        for j in range(k):
+            x = euler_maruyama_step(x, acc, h, self.params.wind, noise[:, j, :])
+        self.states = x
+        self.time_s += dt_s
+        return acc
+
+    def _take_noise(self, k: int) -> np.ndarray:
+        """The next 2 k draws of every vehicle's stream, (n, k, 2)."""
         need = 2 * k
         if self._noise.shape[1] - self._noise_pos < need:
             m = max(need, self._PREFETCH)
@@ -252,9 +269,36 @@ class SwarmPlant:
             self._noise_pos = 0
         noise = np.ascontiguousarray(self._noise[:, self._noise_pos:self._noise_pos + need]).reshape(self.n, k, 2)
         self._noise_pos += need
-        x = self.states
-        for j in range(k):
-            x = euler_maruyama_step(x, acc, h, self.params.wind, noise[:, j, :])
-        self.states = x
+        return noise
+
+    def _step_single(self, acc_m_s2: np.ndarray, dt_s: float) -> np.ndarray:
+        """``step`` of a plant of one vehicle (a mock process's), with the numbers of the
+        vectorised code: saturate_norm and euler_maruyama_step's elementwise IEEE operations
+        (+ - * / sqrt, each rounded, in the same order) on Python floats instead of (1, 2)
+        arrays; the wind term ``dW @ V_o.T`` is still numpy's matmul of each (1, 2) row
+        (one stacked call over the sub-steps, the same row-by-row products)."""
+        acc = np.asarray(acc_m_s2, dtype=float).reshape(1, 2)
+        ax, ay = acc[0].tolist()
+        if not (math.isfinite(ax) and math.isfinite(ay)):
+            raise ValueError("acceleration must be finite")
+        norm = math.sqrt(ax * ax + ay * ay)                                     # saturate_norm
+        scale = self.params.acc_limit_m_s2 / (norm if norm >= 1e-300 else 1e-300)
+        if scale >= 1.0:
+            scale = 1.0
+        ax, ay = ax * scale, ay * scale
+        cached = self._single_cache
+        if cached is None or cached[0] is not self.params or cached[1] != dt_s:
+            wind = self.params.wind
+            k = self.params.substeps(dt_s)
+            cached = self._single_cache = (self.params, dt_s, k, dt_s / k, np.sqrt(dt_s / k), wind.c0_per_s,
+                                           *wind.v_o.tolist(), wind.V_o.T)
+        _, _, k, h, sqrt_h, c0, vox, voy, diffusion_t = cached
+        dW = (self._take_noise(k) * sqrt_h).reshape(k, 1, 2)                    # euler_maruyama_step's dW, per sub-step
+        diffusion = np.matmul(dW, diffusion_t).reshape(k, 2).tolist()
+        x, y, vx, vy = self.states[0].tolist()
+        for dvx, dvy in diffusion:                                              # euler_maruyama_step
+            x, y, vx, vy = (x + vx * h, y + vy * h,
+                            vx + (ax - c0 * (vx - vox)) * h + dvx, vy + (ay - c0 * (vy - voy)) * h + dvy)
+        self.states = np.array([[x, y, vx, vy]])
         self.time_s += dt_s
-        return acc
+        return np.array([[ax, ay]])

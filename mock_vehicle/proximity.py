@@ -13,6 +13,7 @@ the sensed sets and their wire resolution are the same on every path.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -88,16 +89,62 @@ def encode_traffic(states: np.ndarray, home_deg: tuple[float, float] = DEFAULT_H
     return out
 
 
+_SCALAR_LIMIT = 1e15
+"""``_encode_traffic_rows`` computes states whose every |value| is below this (m, m/s) with the
+scalar formulas: their integers fit int64 (|x| / m_north and 100 |v| < 2^62), where numpy's and
+Python's are the same; anything else (non-finite, absurd) goes through ``encode_traffic``."""
+
+
+def _encode_traffic_rows(states: np.ndarray, home_deg: tuple[float, float]) -> list:
+    """``encode_traffic(states, home_deg).tolist()``: per vehicle with the scalar formulas it
+    reproduces bit for bit (tests/test_proximity.py), cheaper than numpy for a mock's few
+    sensed vehicles per step."""
+    h_lat, h_lon = home_e7(home_deg)
+    m_n, m_e = metres_per_e7(h_lat)
+    rows = []
+    lim = _SCALAR_LIMIT
+    hypot, atan2, degrees = math.hypot, math.atan2, math.degrees
+    for x, y, vx, vy in np.asarray(states, dtype=np.float64).reshape(-1, 4).tolist():
+        if not (-lim < x < lim and -lim < y < lim and -lim < vx < lim and -lim < vy < lim):   # NaN fails too
+            return encode_traffic(states, home_deg).tolist()
+        speed = hypot(vx, vy)
+        rows.append((h_lat + round(x / m_n), h_lon + round(y / m_e), min(round(speed * 100.0), 65535),
+                     round(degrees(atan2(vy, vx)) * 100.0) % 36000 if speed > 0 else 0))
+    return rows
+
+
+_ADSB_FIELDS = ("icao_address", "lat_e7", "lon_e7", "altitude_type", "altitude_mm", "heading_cdeg", "hor_velocity_cm_s",
+                "ver_velocity_cm_s", "callsign", "emitter_type", "tslc_s", "flags", "squawk", "received_monotonic_s")
+_ADSB_DIRECT = ([f.name for f in dataclasses.fields(AdsbVehicle)] == list(_ADSB_FIELDS)
+                and not hasattr(AdsbVehicle, "__post_init__") and "__slots__" not in vars(AdsbVehicle))
+_ADSB_UNSTAMPED = dataclasses.fields(AdsbVehicle)[-1].default     # received_monotonic_s of a message built locally (NaN)
+"""AdsbVehicle is a plain frozen dataclass (these fields in this order, no __post_init__, no
+slots): ``traffic_reports`` may then fill a new instance's ``__dict__`` directly, the object
+its constructor would build (the same fields, values and order) at a third of the cost of
+the frozen ``__init__`` (one object.__setattr__ per field). Otherwise it calls the constructor."""
+
+
 def traffic_reports(ids: np.ndarray, states: np.ndarray, time_boot_ms: int, home_deg: tuple[float, float] = DEFAULT_HOME_DEG,
                     altitude_amsl_m: float = DEFAULT_HOME_ALT_AMSL_M + 10.0) -> list[AdsbVehicle]:
     """The ADSB_VEHICLE messages of one traffic set (tagged ``time_boot_ms``)."""
-    enc = encode_traffic(states, home_deg)
+    enc = _encode_traffic_rows(states, home_deg)
     tag = traffic_tag(time_boot_ms)
     alt_mm = int(round(altitude_amsl_m * 1000.0))
-    return [AdsbVehicle(icao_address=icao_of_vehicle_id(int(v)), lat_e7=int(e[0]), lon_e7=int(e[1]), altitude_type=1,
-                        altitude_mm=alt_mm, heading_cdeg=int(e[3]), hor_velocity_cm_s=int(e[2]), ver_velocity_cm_s=0,
-                        callsign=tag, emitter_type=14, tslc_s=0, flags=ADSB_FLAGS_EMULATED, squawk=0)
-            for v, e in zip(np.asarray(ids).reshape(-1).tolist(), enc)]
+    ids = np.asarray(ids).reshape(-1).tolist()
+    if not _ADSB_DIRECT:
+        return [AdsbVehicle(icao_address=icao_of_vehicle_id(v), lat_e7=lat, lon_e7=lon, altitude_type=1, altitude_mm=alt_mm,
+                            heading_cdeg=hdg, hor_velocity_cm_s=speed, ver_velocity_cm_s=0, callsign=tag, emitter_type=14,
+                            tslc_s=0, flags=ADSB_FLAGS_EMULATED, squawk=0)
+                for v, (lat, lon, speed, hdg) in zip(ids, enc)]
+    out = []
+    new, unstamped, flags = object.__new__, _ADSB_UNSTAMPED, ADSB_FLAGS_EMULATED
+    for v, (lat, lon, speed, hdg) in zip(ids, enc):
+        m = new(AdsbVehicle)
+        m.__dict__.update(icao_address=icao_of_vehicle_id(v), lat_e7=lat, lon_e7=lon, altitude_type=1, altitude_mm=alt_mm,
+                          heading_cdeg=hdg, hor_velocity_cm_s=speed, ver_velocity_cm_s=0, callsign=tag, emitter_type=14,
+                          tslc_s=0, flags=flags, squawk=0, received_monotonic_s=unstamped)
+        out.append(m)
+    return out
 
 
 def quantise_sensed_states(states: np.ndarray, home_deg: tuple[float, float] = DEFAULT_HOME_DEG) -> np.ndarray:

@@ -71,12 +71,13 @@ def run_vehicle(
             vehicle.state[2:4].tolist(),
             "lockstep" if cfg.lockstep else "real-time",
         )
+        sources: list = ports + ([world] if world is not None else [])
         gc.collect()
         gc.freeze()  # start-up objects (imports, dialect tables) are never scanned again
         while not stop.is_set():
             wait_s = min(max(0.0, vehicle.next_deadline() - time.monotonic()), max_wait_s)
             try:
-                readable, _, _ = select.select(ports + ([world] if world is not None else []), [], [], wait_s)
+                readable, _, _ = select.select(sources, [], [], wait_s)
             except (OSError, ValueError):
                 if stop.is_set():
                     break

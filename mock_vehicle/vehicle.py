@@ -163,12 +163,26 @@ def _finite(*xs: float) -> bool:
     return all(math.isfinite(x) for x in xs)
 
 
+_F = PositionTargetTypeMask
+_FORCE_SET = int(_F.FORCE_SET)          # the mask bits as plain ints: IntFlag arithmetic costs a Python call per bit
+_POSITION_IGNORE, _VELOCITY_IGNORE, _ACCELERATION_IGNORE = int(_F.POSITION_IGNORE), int(_F.VELOCITY_IGNORE), int(_F.ACCELERATION_IGNORE)
+_X_IGNORE, _Y_IGNORE, _VX_IGNORE, _VY_IGNORE, _AX_IGNORE, _AY_IGNORE = (
+    int(_F.X_IGNORE), int(_F.Y_IGNORE), int(_F.VX_IGNORE), int(_F.VY_IGNORE), int(_F.AX_IGNORE), int(_F.AY_IGNORE))
+_SETPOINT_FIELDS = (
+    (_X_IGNORE, "x_m", "position_m"), (_Y_IGNORE, "y_m", "position_m"), (int(_F.Z_IGNORE), "z_m", "position_m"),
+    (_VX_IGNORE, "vx_m_s", "velocity_m_s"), (_VY_IGNORE, "vy_m_s", "velocity_m_s"), (int(_F.VZ_IGNORE), "vz_m_s", "velocity_m_s"),
+    (_AX_IGNORE, "afx_m_s2", "acceleration_m_s2"), (_AY_IGNORE, "afy_m_s2", "acceleration_m_s2"),
+    (int(_F.AZ_IGNORE), "afz_m_s2", "acceleration_m_s2"),
+    (int(_F.YAW_IGNORE), "yaw_rad", "yaw_rad"), (int(_F.YAW_RATE_IGNORE), "yaw_rate_rad_s", "yaw_rate_rad_s"),
+)  # fmt: skip
+"""(ignore bit, field, SETPOINT_LIMITS key) of every field a mask can use."""
+
+
 def check_setpoint(sp: SetPositionTargetLocalNed, system_id: int, component_id: int) -> tuple[str, str] | None:
     """PX4's filter for SET_POSITION_TARGET_LOCAL_NED (SPEC 4). Returns None if usable, or
     (kind, detail) of the rejection: wrong target, frame other than LOCAL_NED/BODY_NED,
     FORCE_SET bit, a mask ignoring position, velocity and acceleration alike, or a
     non-finite value in a field the mask uses."""
-    F = PositionTargetTypeMask
     if sp.target_system not in (0, system_id):
         return "setpoint wrong target system", f"target_system {sp.target_system}, this vehicle is {system_id}"
     if sp.target_component not in (0, component_id):
@@ -176,24 +190,15 @@ def check_setpoint(sp: SetPositionTargetLocalNed, system_id: int, component_id: 
     if sp.coordinate_frame not in (MavFrame.LOCAL_NED, MavFrame.BODY_NED):
         return "setpoint unsupported frame", f"coordinate_frame {sp.coordinate_frame} (LOCAL_NED=1 or BODY_NED=8 only)"
     mask = sp.type_mask
-    if mask & F.FORCE_SET:
+    if mask & _FORCE_SET:
         return "setpoint FORCE_SET bit", f"type_mask {mask:#06x}"
-    use_pos = (mask & F.POSITION_IGNORE) != F.POSITION_IGNORE
-    use_vel = (mask & F.VELOCITY_IGNORE) != F.VELOCITY_IGNORE
-    use_acc = (mask & F.ACCELERATION_IGNORE) != F.ACCELERATION_IGNORE
+    use_pos = (mask & _POSITION_IGNORE) != _POSITION_IGNORE
+    use_vel = (mask & _VELOCITY_IGNORE) != _VELOCITY_IGNORE
+    use_acc = (mask & _ACCELERATION_IGNORE) != _ACCELERATION_IGNORE
     if not (use_pos or use_vel or use_acc):
         return "setpoint ignores everything", f"type_mask {mask:#06x} ignores position, velocity and acceleration"
     L = SETPOINT_LIMITS
-    used = []
-    for bit, value, limit in (
-        (F.X_IGNORE, sp.x_m, L["position_m"]), (F.Y_IGNORE, sp.y_m, L["position_m"]), (F.Z_IGNORE, sp.z_m, L["position_m"]),
-        (F.VX_IGNORE, sp.vx_m_s, L["velocity_m_s"]), (F.VY_IGNORE, sp.vy_m_s, L["velocity_m_s"]), (F.VZ_IGNORE, sp.vz_m_s, L["velocity_m_s"]),
-        (F.AX_IGNORE, sp.afx_m_s2, L["acceleration_m_s2"]), (F.AY_IGNORE, sp.afy_m_s2, L["acceleration_m_s2"]),
-        (F.AZ_IGNORE, sp.afz_m_s2, L["acceleration_m_s2"]),
-        (F.YAW_IGNORE, sp.yaw_rad, L["yaw_rad"]), (F.YAW_RATE_IGNORE, sp.yaw_rate_rad_s, L["yaw_rate_rad_s"]),
-    ):  # fmt: skip
-        if not mask & bit:
-            used.append((value, limit))
+    used = [(getattr(sp, name), L[key]) for bit, name, key in _SETPOINT_FIELDS if not mask & bit]
     if not _finite(*(v for v, _ in used)):
         return "setpoint non-finite field", f"NaN/inf in a used field (type_mask {mask:#06x})"
     if any(abs(v) > limit for v, limit in used):
@@ -263,6 +268,7 @@ class MockVehicle:
         self._last_sp_sim_s = 0.0
         self._intervals_s = {k: (1.0 / hz if hz > 0 else math.inf) for k, hz in cfg.rates_hz.items()}
         self._next_due = {k: self._t0 for k in self._intervals_s}
+        self._update_telemetry_due()
         self._next_resend = self._t0
         self.n_steps_failsafe = 0
         # proximity sensor (docs/proximity.md): set by attach_world
@@ -452,6 +458,7 @@ class MockVehicle:
         else:
             self._intervals_s[kind] = max(interval_us * 1e-6, 1e-3)
         self._next_due[kind] = self._clock()
+        self._update_telemetry_due()
         return MavResult.ACCEPTED
 
     def _on_param(self, m, port) -> None:
@@ -496,30 +503,31 @@ class MockVehicle:
     def _setpoint_acc_m_s2(self) -> np.ndarray:
         """Horizontal acceleration the held setpoint asks for (float32 from the wire, as
         float64). Acceleration is used as is (feed-forward); velocity and position
-        setpoints (masks PX4 also accepts) go through a PD like PX4's position loop."""
+        setpoints (masks PX4 also accepts) go through a PD like PX4's position loop.
+        (Per axis on Python floats: the same IEEE operations in the same order as the
+        elementwise numpy formula acc_sp + (where(use_pos, 1.0 (pos_sp - r), 0) + 2.0 (vel_sp - v)),
+        a field the mask ignores counting as 0.)"""
         sp = self.setpoint
         if sp is None:
             return np.zeros(2)
-        F = PositionTargetTypeMask
         m = sp.type_mask
-        s = self.state
-
-        def axes(bits: tuple[int, int], values: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-            """(used per axis, value where used else 0): an ignored field never enters the sum."""
-            used = np.array([not (m & b) for b in bits])
-            return used, np.where(used, np.array(values, dtype=np.float64), 0.0) if used.any() else np.zeros(2)
-
-        use_acc, acc_sp = axes((F.AX_IGNORE, F.AY_IGNORE), (sp.afx_m_s2, sp.afy_m_s2))
-        use_vel, vel_sp = axes((F.VX_IGNORE, F.VY_IGNORE), (sp.vx_m_s, sp.vy_m_s))
-        use_pos, pos_sp = axes((F.X_IGNORE, F.Y_IGNORE), (sp.x_m, sp.y_m))
-        acc = acc_sp.copy()
-        if use_pos.any():
-            acc += np.where(use_pos, 1.0 * (pos_sp - s[0:2]), 0.0) + 2.0 * (vel_sp - s[2:4])
-        elif use_vel.any():
-            acc += 2.0 * (vel_sp - s[2:4])
-        if sp.coordinate_frame == MavFrame.BODY_NED:
-            pass  # yaw is held at 0 (north), so body and local NED coincide
-        return acc
+        afx, afy, vx_sp, vy_sp, x_sp, y_sp = (float(sp.afx_m_s2), float(sp.afy_m_s2), float(sp.vx_m_s), float(sp.vy_m_s),
+                                              float(sp.x_m), float(sp.y_m))
+        acc_x = 0.0 if m & _AX_IGNORE else afx
+        acc_y = 0.0 if m & _AY_IGNORE else afy
+        use_vx, use_vy = not m & _VX_IGNORE, not m & _VY_IGNORE
+        use_px, use_py = not m & _X_IGNORE, not m & _Y_IGNORE
+        vel_x = vx_sp if use_vx else 0.0
+        vel_y = vy_sp if use_vy else 0.0
+        x, y, vx, vy = self.plant.states[0].tolist()
+        if use_px or use_py:
+            acc_x = acc_x + ((1.0 * (x_sp - x) if use_px else 0.0) + 2.0 * (vel_x - vx))
+            acc_y = acc_y + ((1.0 * (y_sp - y) if use_py else 0.0) + 2.0 * (vel_y - vy))
+        elif use_vx or use_vy:
+            acc_x = acc_x + 2.0 * (vel_x - vx)
+            acc_y = acc_y + 2.0 * (vel_y - vy)
+        # sp.coordinate_frame BODY_NED: yaw is held at 0 (north), so body and local NED coincide
+        return np.array([acc_x, acc_y])
 
     def _current_acc_m_s2(self) -> np.ndarray:
         if self.mode == PX4_OFFBOARD:
@@ -531,12 +539,12 @@ class MockVehicle:
 
     def _step(self, dt_s: float) -> None:
         acc = self._current_acc_m_s2()
-        if not np.all(np.isfinite(acc)):
+        if not np.isfinite(acc).all():
             self.rejects.reject("non-finite acceleration", f"{acc}: holding instead")
             acc = hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
         before = self.plant.states.copy()
         self.applied_acc_m_s2 = self.plant.step(acc, dt_s)[0]
-        if not np.all(np.isfinite(self.plant.states)):
+        if not np.isfinite(self.plant.states).all():
             self.rejects.reject("non-finite plant state", "restoring the previous state")
             self.plant.states = before
         if self.mode == PX4_LAND:
@@ -669,15 +677,25 @@ class MockVehicle:
                     break
         self._periodic(now)
 
+    def _update_telemetry_due(self) -> None:
+        """``_telemetry_due``: when the next periodic telemetry message is due (the earliest
+        ``_next_due`` of the kinds ``_periodic`` sends on their own clock), kept up to date
+        wherever ``_next_due`` or ``_intervals_s`` change, so an idle tick costs one comparison."""
+        lockstep = self.cfg.lockstep
+        self._telemetry_due = min((self._next_due[k] for k, iv in self._intervals_s.items()
+                                   if iv != math.inf and not (lockstep and k in FAST_TELEMETRY)), default=math.inf)
+
     def _periodic(self, now: float) -> None:
         lockstep = self.cfg.lockstep
-        for kind, interval in self._intervals_s.items():
-            if interval == math.inf or now < self._next_due[kind]:
-                continue
-            if lockstep and kind in FAST_TELEMETRY:
-                continue  # in lockstep these follow the steps (plus the slow re-send below)
-            self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
-            self._send(self._telemetry(kind), None)
+        if now >= self._telemetry_due:
+            for kind, interval in self._intervals_s.items():
+                if interval == math.inf or now < self._next_due[kind]:
+                    continue
+                if lockstep and kind in FAST_TELEMETRY:
+                    continue  # in lockstep these follow the steps (plus the slow re-send below)
+                self._next_due[kind] = max(self._next_due[kind] + interval, now - interval)
+                self._send(self._telemetry(kind), None)
+            self._update_telemetry_due()
         self._world_tick(now)
         if lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0 and now >= self._next_resend:
             self._next_resend = now + 1.0 / self.cfg.lockstep_resend_hz
@@ -687,8 +705,7 @@ class MockVehicle:
         """Monotonic time of the next periodic event (for the I/O loop's select timeout): the
         loop sleeps until then or until a packet arrives, so an idle or lockstep vehicle does not
         spin. Every event ``tick`` acts on has its deadline here."""
-        t = min((self._next_due[k] for k, iv in self._intervals_s.items()
-                 if iv != math.inf and not (self.cfg.lockstep and k in FAST_TELEMETRY)), default=math.inf)
+        t = self._telemetry_due
         if not self.cfg.lockstep:
             t = min(t, self._t0 + self._phys_t_s + self.cfg.physics_dt_s)
             if self.mode == PX4_OFFBOARD:  # the offboard-loss failsafe, on time
@@ -724,15 +741,15 @@ class MockVehicle:
         )
 
     def _local_position(self) -> LocalPositionNed:
-        x, y, vx, vy = (float(v) for v in self.state)
+        x, y, vx, vy = self.state.tolist()
         return LocalPositionNed(self.time_boot_ms(), x, y, self.z_m, vx, vy, self.vz_m_s)
 
     def _attitude(self) -> Attitude:
-        an, ae = (float(a) for a in self.applied_acc_m_s2) if self._moving() else (0.0, 0.0)
+        an, ae = self.applied_acc_m_s2.tolist() if self._moving() else (0.0, 0.0)
         return Attitude(self.time_boot_ms(), math.atan2(ae, GRAVITY_M_S2), math.atan2(-an, GRAVITY_M_S2), 0.0)
 
     def _global_position(self) -> GlobalPositionInt:
-        x, y, vx, vy = (float(v) for v in self.state)
+        x, y, vx, vy = self.state.tolist()
         lat0 = self.cfg.home_lat_deg
         lat = lat0 + math.degrees(x / EARTH_RADIUS_M)
         lon = self.cfg.home_lon_deg + math.degrees(y / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))

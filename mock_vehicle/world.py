@@ -76,7 +76,7 @@ class Answer:
 
 
 def pack_report(vehicle_id: int, time_boot_ms: int, state: np.ndarray) -> bytes:
-    x, y, vx, vy = (float(v) for v in np.asarray(state, dtype=np.float64).reshape(4))
+    x, y, vx, vy = np.asarray(state, dtype=np.float64).reshape(4).tolist()
     return _HDR.pack(MAGIC, VERSION, KIND_REPORT, vehicle_id, time_boot_ms & 0xFFFFFFFF, 1) + _ENTRY.pack(vehicle_id, x, y, vx, vy)
 
 
