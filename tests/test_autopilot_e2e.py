@@ -94,7 +94,7 @@ def test_stale_telemetry_stops_setpoints_and_resumes_when_it_returns(tmp_path):
             "--initial-pos-m", "150,100"]
     log = tmp_path / "c.jsonl"
     with spawn(mavproxy, log_dir=tmp_path, name="mavproxy", stop_timeout_s=3.0) as mp, spawn(mock, log_dir=tmp_path, name="mock") as mv:
-        with spawn(_autopilot(f"udpin:127.0.0.1:{p_out}", "--steps", "25", "--preset", "paper", "--log", str(log),
+        with spawn(_autopilot(f"udpin:127.0.0.1:{p_out}", "--steps", "19", "--preset", "paper", "--log", str(log),
                               "--vehicle-lost-s", "30"), log_dir=tmp_path, name="ap", stop_signal=signal.SIGINT) as ap:
             wait_until(lambda: log.exists() and sum('"type":"step"' in l for l in log.read_text().splitlines()) >= 3, 60, "3 control steps")
             mp.popen.send_signal(signal.SIGSTOP)              # the link falls silent both ways

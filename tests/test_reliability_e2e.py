@@ -42,7 +42,7 @@ def _recs(path):
 def test_controller_crash_hold_then_resume_without_new_exchange(tmp_path):
     mav = free_udp_ports(2)
     zp = _tcp_ports(2)
-    steps = 40
+    steps = 22                    # paper preset: dt = 1 s of real time per step
 
     def mock(i):
         return [PYTHON, "-m", "mock_vehicle.cli", "--instance", str(i), "--onboard-url", f"udpout:127.0.0.1:{mav[i]}",
