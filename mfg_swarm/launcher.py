@@ -360,6 +360,26 @@ def _controller_status(paths: list[Path], offsets: list[int], state: list[dict])
                 state[i]["end"] = rec.get("reason")
 
 
+_PREVIOUS_RUN_FILES = ("controllers/controller*.jsonl", "vehicles/vehicle*.tlog", "stderr/*.log", "metrics.json",
+                       "trajectories.npz", "fig*.png")
+
+
+def clear_previous_run(out: Path) -> list[Path]:
+    """Delete the files an earlier run left in ``out`` (it is reused when the same run is asked
+    for again): controller logs are appended to (a restarted controller continues its own log),
+    so an old log would merge two flights into one (the t = 0 exchange counted twice, Fig. 3 from
+    the old flight), and an old metrics.json would outlive a new run that fails. Only the files
+    a run writes (``_PREVIOUS_RUN_FILES``); anything else in the folder is left alone. Returns
+    the deleted paths."""
+    gone = []
+    for pattern in _PREVIOUS_RUN_FILES:
+        for f in sorted(out.glob(pattern)):
+            if f.is_file():
+                f.unlink()
+                gone.append(f)
+    return gone
+
+
 def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     """Fly the swarm as processes; return (output folder, metrics)."""
     sc = cfg.scenario
@@ -374,6 +394,9 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
             raise LaunchError(str(exc)) from None
     preset = preset_by_name(cfg.preset_name)
     out = Path(cfg.out)
+    gone = clear_previous_run(out)
+    if gone:
+        sys.stderr.write(f"{out}: replaced the previous run's results ({len(gone)} files)\n")
     for sub in ("vehicles", "controllers", "stderr"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     status_path = out / "STATUS.json"

@@ -109,3 +109,21 @@ def test_bytecode_cache_for_children_when_byte_code_writing_is_off(tmp_path, mon
     os.chmod(prefix, 0o777)                               # a cache others could write to is never used
     assert launcher._bytecode_cache_env(sys.executable, tmp_path / "warm.log") is None
     assert runtime_src.exists()
+
+
+def test_a_reused_results_folder_starts_clean_but_keeps_other_files(tmp_path):
+    """Flying the same run again reuses its folder: the old controller logs (appended to, by
+    design, across a controller's restarts) and results go, so the new flight is not merged
+    with the old one (the t = 0 exchange was counted twice in comm_states); other files stay."""
+    from mfg_swarm.launcher import clear_previous_run
+
+    old = ["controllers/controller0.jsonl", "controllers/controller12.jsonl", "vehicles/vehicle0.tlog", "stderr/world.log",
+           "metrics.json", "trajectories.npz", "fig3_trajectories.png"]
+    keep = ["notes.txt", "controllers/README", "vehicles/extra.bin"]
+    for f in old + keep:
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f).write_text("x")
+    gone = clear_previous_run(tmp_path)
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in gone) == sorted(old)
+    assert all((tmp_path / f).exists() for f in keep) and not any((tmp_path / f).exists() for f in old)
+    assert clear_previous_run(tmp_path / "missing") == []
