@@ -245,6 +245,7 @@ def test_per_vehicle_acl_a_vehicle_cannot_speak_for_another(tmp_path):
     forger = None
     stop = threading.Event()
     puts = [0]
+    t = None
     try:
         assert router.next_line(20) == "ready", router.stderr_lines
         for ex in exs:
@@ -288,6 +289,8 @@ def test_per_vehicle_acl_a_vehicle_cannot_speak_for_another(tmp_path):
         del tokens
     finally:
         stop.set()
+        if t is not None:
+            t.join(10)          # the flood ends before its session closes (a put on a closed session raises)
         if forger is not None:
             forger.close()
         for ex in exs:
