@@ -360,15 +360,17 @@ def _controller_status(paths: list[Path], offsets: list[int], state: list[dict])
                 state[i]["end"] = rec.get("reason")
 
 
-_PREVIOUS_RUN_FILES = ("controllers/controller*.jsonl", "vehicles/vehicle*.tlog", "stderr/*.log", "metrics.json",
-                       "trajectories.npz", "fig*.png")
+_PREVIOUS_RUN_FILES = ("controllers/controller*.jsonl", "controllers/state*/checkpoint.pkl", "vehicles/vehicle*.tlog",
+                       "stderr/*.log", "metrics.json", "trajectories.npz", "fig*.png")
 
 
 def clear_previous_run(out: Path) -> list[Path]:
     """Delete the files an earlier run left in ``out`` (it is reused when the same run is asked
     for again): controller logs are appended to (a restarted controller continues its own log),
     so an old log would merge two flights into one (the t = 0 exchange counted twice, Fig. 3 from
-    the old flight), and an old metrics.json would outlive a new run that fails. Only the files
+    the old flight); an old checkpoint of the same swarm name (``--swarm``) would make the new
+    flight resume at the old one's last step; and an old metrics.json would outlive a new run
+    that fails. Only the files
     a run writes (``_PREVIOUS_RUN_FILES``); anything else in the folder is left alone. Returns
     the deleted paths."""
     gone = []

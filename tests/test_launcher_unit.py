@@ -117,7 +117,8 @@ def test_a_reused_results_folder_starts_clean_but_keeps_other_files(tmp_path):
     with the old one (the t = 0 exchange was counted twice in comm_states); other files stay."""
     from mfg_swarm.launcher import clear_previous_run
 
-    old = ["controllers/controller0.jsonl", "controllers/controller12.jsonl", "vehicles/vehicle0.tlog", "stderr/world.log",
+    old = ["controllers/controller0.jsonl", "controllers/controller12.jsonl", "controllers/state3/checkpoint.pkl",
+           "vehicles/vehicle0.tlog", "stderr/world.log",
            "metrics.json", "trajectories.npz", "fig3_trajectories.png"]
     keep = ["notes.txt", "controllers/README", "vehicles/extra.bin"]
     for f in old + keep:
