@@ -161,19 +161,8 @@ def count_within(pts: np.ndarray, range_m: float, tree: cKDTree | None = None, p
         tree = cKDTree(pts) if tree is None else tree
         counts = tree.query_ball_point(pts, r, return_length=True).astype(np.int64) - 1
         return (counts, pos_sums_by_tree(tree, pts, r)) if pos_sums else counts
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    ext = np.maximum(hi - lo, 1e-9)
-    s = r / CELLS_PER_RANGE
-    if (ext[0] / s + 1) * (ext[1] / s + 1) > 4 * n + 1024:      # a spread-out swarm: coarser cells, bounded memory
-        s = float(math.sqrt(ext[0] * ext[1] / (4 * n))) + max(ext[0], ext[1]) / (4 * n)
-    ncx, ncy = int(ext[0] // s) + 1, int(ext[1] // s) + 1
-    x0, y0 = float(lo[0]), float(lo[1])
-    cx = np.clip(np.floor((pts[:, 0] - x0) / s).astype(np.int64), 0, ncx - 1)
-    cy = np.clip(np.floor((pts[:, 1] - y0) / s).astype(np.int64), 0, ncy - 1)
-    cell = cy * ncx + cx
-    order = np.argsort(cell, kind="stable")
-    cell_start = np.zeros(ncx * ncy + 1, dtype=np.int64)
-    np.cumsum(np.bincount(cell, minlength=ncx * ncy), out=cell_start[1:])
+    order, cell_start, ncx, ncy, x0, y0, s = _grid(pts, r / CELLS_PER_RANGE)   # coarser cells for a spread-out swarm
+    hi = pts.max(axis=0)
     xs, ys = pts[order, 0].copy(), pts[order, 1].copy()
     # margin: far above the rounding of the cell geometry (~1e-16 of the coordinates), far below any spacing
     margin = 1e-9 * (r + float(np.max(np.abs(pts)))) + 1e-12
