@@ -293,13 +293,10 @@ class MavCodec:
         if typed is not None and self.signing is None:   # the hot types: no pymavlink object (_FAST_TYPED)
             tx = self._tx
             seq = tx.seq
-            pack, values, header_tail, crc_extra_byte = typed
-            payload = pack(*values(msg))
-            trimmed = payload.rstrip(b"\x00") or payload[:1]     # MAVLink 2 trims trailing zeros, keeps one byte
-            body = _LEN_SEQ_IDS.pack(len(trimmed), 0, 0, seq, self.source_system, self.source_component) + header_tail + trimmed
+            pack, values, msg_id, crc_extra_byte = typed
+            packet = _frame(pack(*values(msg)), msg_id, crc_extra_byte, seq, self.source_system, self.source_component)
             tx.seq = (seq + 1) % 256
-            crc = _MCRF4XX(crc_extra_byte, _MCRF4XX(body, 0xFFFF)) if _MCRF4XX is not None else _crc_x25(body, crc_extra_byte)
-            return b"\xfd" + body + _CRC.pack(crc)
+            return packet
         try:
             enc = _ENCODERS[type(msg)]
         except KeyError:
@@ -542,24 +539,10 @@ _FAST = _fast_specs(("ADSB_VEHICLE", "NAMED_VALUE_INT", "LOCAL_POSITION_NED", "A
                      "HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION"))
 _FAST_ENCODE = _encode_specs(("ADSB_VEHICLE", "NAMED_VALUE_INT", "LOCAL_POSITION_NED", "ATTITUDE", "GLOBAL_POSITION_INT",
                               "HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED", "SYS_STATUS", "EXTENDED_SYS_STATE"))
-_LEN_SEQ_IDS = struct.Struct("<BBBBBB")     # the header up to the message id: len, incompat, compat, seq, sysid, compid
 _TYPED_PACKERS: dict[type, tuple] = {
-    # typed message type -> (struct pack, wire-order values, message id bytes, CRC extra byte): what ``MavCodec.encode``
-    # frames itself (as ``_frame`` does)
-    t: (_FAST_ENCODE[msg_id][0].pack, values, struct.pack("<HB", msg_id & 0xFFFF, msg_id >> 16), _FAST_ENCODE[msg_id][1])
-    for t, (msg_id, values) in _FAST_TYPED.items()
+    # typed message type -> (struct pack, wire-order values, message id, CRC extra byte): what ``MavCodec.encode`` frames
+    t: (_FAST_ENCODE[msg_id][0].pack, values, msg_id, _FAST_ENCODE[msg_id][1]) for t, (msg_id, values) in _FAST_TYPED.items()
 }
-
-
-def _crc_py(buf: bytes, crc: int) -> int:
-    """``mcrf4xx(buf, crc)`` without fastcrc: pymavlink's pure-Python X.25 accumulator."""
-    x = _mavlink.x25crc()
-    x.crc = crc
-    x.accumulate(bytes(buf))
-    return x.crc
-
-
-_crc16 = _MCRF4XX if _MCRF4XX is not None else _crc_py
 _new_object = object.__new__
 _set_attr = object.__setattr__
 _ZERO_PAD = tuple(bytes(k) for k in range(256))
@@ -644,7 +627,7 @@ def _decode_fast(data: bytes, now: float) -> list[Received] | None:
     set, ~28 per control step, on the controller's receive thread."""
     out: list[Received] = []
     append = out.append
-    crc16, new, set_attr, pad = _crc16, _new_object, _set_attr, _ZERO_PAD
+    crc_x25, new, set_attr, pad = _crc_x25, _new_object, _set_attr, _ZERO_PAD
     cs_raw = cs_str = None              # the callsign last decoded (a traffic set's reports share one tag)
     i, n = 0, len(data)
     while i < n:
@@ -658,7 +641,7 @@ def _decode_fast(data: bytes, now: float) -> list[Received] | None:
         if spec is None:
             return None
         size, crc_extra_byte, unpack, unpack_from, build = spec
-        if plen > size or crc16(crc_extra_byte, crc16(data[i + 1 : end - 2], 0xFFFF)) != (data[end - 2] | (data[end - 1] << 8)):
+        if plen > size or crc_x25(data[i + 1 : end - 2], crc_extra_byte) != (data[end - 2] | (data[end - 1] << 8)):
             return None
         # MAVLink 2 trims trailing zero bytes of the payload: put them back
         v = unpack_from(data, i + 10) if plen == size else unpack(data[i + 10 : end - 2] + pad[size - plen])
