@@ -118,6 +118,10 @@ class Controller(Protocol):
     #     to the summation order of the terms that remain)."""
     # def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
     #     """Likewise for the proximity sensor (Observation.sensed)."""
+    # A controller may split step(obs) into three calls (the default MFG controller does; the runtime
+    # then keeps only act() between the position and the setpoint): prepare(step) (what does not
+    # depend on the observation; idempotent), act(obs) -> StepInfo (the action), finish() (what only
+    # later steps read, e.g. a model update). step(obs) must equal act(obs) then finish(), bit for bit.
 
     def weights(self) -> dict[str, np.ndarray]:
         """Learned weights for logging (e.g. {"w_H": (n, 54), "w_F": (n, 69)})."""

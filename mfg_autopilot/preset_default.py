@@ -190,6 +190,8 @@ class DefaultMFGController(_DefaultBase):
         ps = p.backstop.plan_mismatch_s
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
+        self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
+        self._pending: tuple | None = None      # act()'s deferred work for finish()
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """The one exchange: every row gets the same plan from the same (N, 4) states."""
@@ -197,6 +199,7 @@ class DefaultMFGController(_DefaultBase):
         S0 = np.asarray(states, dtype=float)
         self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
         self._plan_tree = None
+        self._prepared, self._pending = None, None
         self.plan = MeanFieldPlan(S0, sites_m, p.dt_s, p.cost, p.guidance, p.repulsion, use_slots=p.use_slots,
                                   use_repulsion=p.use_repulsion)
         self._dest = self.plan.slots_m[self.own_index].copy()
@@ -308,14 +311,33 @@ class DefaultMFGController(_DefaultBase):
                                               np.broadcast_to(centroid_rate, (n, 4)), hess_v_psi_trace, self.w_F,
                                               cost.c0_per_s, cost.v_o, cost.c3, lp.mu, self._GGt)
 
-    def step(self, obs: Observation) -> StepInfo:
+    # -- one control step in three parts (a flight computer's critical path is state in -> setpoint out):
+    #    prepare(k) what does not depend on the observation, act(obs) the action, finish() the learning that
+    #    only the next step uses. step(obs) = act(obs) + finish(); the parts give bit-identical results.
+    def prepare(self, step: int) -> None:
+        """Step ``step``'s observation-free part: the plan caught up to it, its action, centroid
+        and centroid rate (cached; act() calls it if the caller did not). A real-time loop
+        calls it at the tick, before it waits for the position."""
         if self.plan is None:
-            raise RuntimeError("DefaultMFGController.step before exchange_t0(): the t = 0 exchange has not happened")
-        p, tp = self.preset, self.preset.tracking
-        while self.plan.k < obs.step:                          # a late start catches the plan up
+            raise RuntimeError("DefaultMFGController.prepare before exchange_t0(): the t = 0 exchange has not happened")
+        if self._pending is not None:
+            raise RuntimeError("DefaultMFGController.prepare: the previous act() was not finished (finish())")
+        while self.plan.k < step:                              # a late start catches the plan up
             self.plan.advance()
+        if self._prepared is None or self._prepared[0] != self.plan.k:
+            p, tp = self.preset, self.preset.tracking
+            a_plan_all = self.plan.action()
+            x = self.plan.states
+            rate = nominal_drift(x, a_plan_all, p.cost).mean(axis=0) if tp.learn_hjb and tp.learn_fpk else None  # d s_bar / dt
+            self._prepared = (self.plan.k, a_plan_all, x.mean(axis=0), rate)
+
+    def act(self, obs: Observation) -> StepInfo:
+        """The action for ``obs`` (Algorithm 4's HJB update at the own state, eq. 8, the backstop);
+        the last FPK update and the plan's advance wait for finish()."""
+        self.prepare(obs.step)
+        p, tp = self.preset, self.preset.tracking
+        _, a_plan_all, centroid, rate = self._prepared
         own = np.asarray(obs.own_states, dtype=float)
-        a_plan_all = self.plan.action()
         s_plan = self.plan.states[self.own_index]
         a_plan = a_plan_all[self.own_index]
         e = own - s_plan
@@ -326,12 +348,10 @@ class DefaultMFGController(_DefaultBase):
         mf_evals = np.full(n, self.plan.N, dtype=np.int64)      # plan particles advanced per UAV
         reg = np.zeros(n, dtype=bool)
         H_hat = np.zeros(n)
-        x = self.plan.states
-        centroid = x.mean(axis=0)
         grad_psi = None                                         # grad psi(e) with the current w_H
+        fpk_args = None
         if tp.learn_hjb:
-            rate = nominal_drift(x, a_plan_all, p.cost).mean(axis=0) if tp.learn_fpk else None     # d s_bar / dt
-            for _ in range(p.learner.K):
+            for it in range(p.learner.K):
                 phi_g, npairs = self._phi_G(own, centroid)
                 mf_evals += npairs // max(n, 1)
                 # hjb_update also returns grad psi and psi_vxvx + psi_vyvy at e with the new w_H
@@ -339,17 +359,35 @@ class DefaultMFGController(_DefaultBase):
                 grad_evals += 1 + active
                 reg |= active
                 if tp.learn_fpk:
-                    a_star = optimal_action(grad_psi, p.cost.c3)
-                    self._fpk_update(own, a_plan + a_star, centroid, rate, hv_tr)
                     grad_evals += 1
+                    if it < p.learner.K - 1:                    # the next iteration's phi_G reads w_F
+                        self._fpk_update(own, a_plan + optimal_action(grad_psi, p.cost.c3), centroid, rate, hv_tr)
+                    else:                                       # only the next step reads it: finish()
+                        fpk_args = (own, a_plan, grad_psi, centroid, rate, hv_tr)
         if grad_psi is None:
             grad_psi = self.sigma_H.grad_psi(e, self.w_H)
         a_fb = optimal_action(grad_psi, p.cost.c3)      # eq. 8: -(1/2c3) B^T grad psi
         if not tp.feedback:
             a_fb = np.zeros_like(a_fb)
         a = self._backstop(own, a_plan + a_fb, obs)
-        self.plan.advance()
+        self._pending = (fpk_args,)
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
+
+    def finish(self) -> None:
+        """The rest of the step act() began: the FPK model's update at the own state (read from
+        the next step on) and the plan's advance to the next step. No-op without a pending act()."""
+        if self._pending is None:
+            return
+        (fpk_args,), self._pending = self._pending, None
+        if fpk_args is not None:
+            own, a_plan, grad_psi, centroid, rate, hv_tr = fpk_args
+            self._fpk_update(own, a_plan + optimal_action(grad_psi, self.preset.cost.c3), centroid, rate, hv_tr)
+        self.plan.advance()
+
+    def step(self, obs: Observation) -> StepInfo:
+        info = self.act(obs)
+        self.finish()
+        return info
 
     def weights(self) -> dict[str, np.ndarray]:
         """Read-only views (no copy: the simulator reads row 0 every step; at N = 10,000 copying both

@@ -61,6 +61,58 @@ def test_bank_of_one_gives_bit_identical_actions_to_a_bank_of_n():
     assert rep_seen, "the test should cover the plan's interaction"
 
 
+@pytest.mark.parametrize("K", [1, 3])
+def test_prepare_act_finish_is_bit_identical_to_step(K):
+    # given two banks of one on the crossing scenario with the learner's K HJB/FPK iterations per step:
+    # one steps with step(obs), the other as a real-time loop does: prepare(k) at the tick, act(obs)
+    # between the position and the setpoint, finish() after the setpoint (runtime.Autopilot)
+    preset = dataclasses.replace(DEFAULT, learner=dataclasses.replace(DEFAULT.learner, K=K))
+    sc = make_scenario("crossing", 10)
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=5)
+    S0 = as_f32(plant.states)
+    ids = np.arange(sc.n)
+    whole, split = (make_controller("mfg", preset, sc.destination_m[2:3]) for _ in range(2))
+    for c in (whole, split):
+        c.exchange_t0(S0, ids, np.array([2]), sc.destination_m)
+    bank = make_controller("mfg", preset, sc.destination_m)      # flies the others
+    bank.exchange_t0(S0, ids, ids, sc.destination_m)
+    for k in range(40):
+        obs = as_f32(plant.states)
+        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(bank.sensor_range_m, output_type="ndarray"))
+        o = Observation(k, k * preset.dt_s, obs[2:3], None, _split(sensed, 2))
+        a_whole = whole.step(o)
+        split.prepare(k)
+        split.prepare(k)                                    # idempotent
+        a_split = split.act(o)
+        w_F_before = split.w_F.copy()
+        # act() leaves the last FPK update and the plan's advance to finish()
+        assert split.plan.k == k
+        split.finish()
+        split.finish()                                      # nothing pending: a no-op
+        # then the action, the step's counters and both models are bit-identical
+        for f in ("acc_m_s2", "grad_evals", "reg_active", "residual", "mf_evals"):
+            np.testing.assert_array_equal(getattr(a_whole, f), getattr(a_split, f))
+        np.testing.assert_array_equal(whole.w_H, split.w_H)
+        np.testing.assert_array_equal(whole.w_F, split.w_F)
+        assert k == 0 or not np.array_equal(w_F_before, split.w_F)
+        assert split.plan.k == whole.plan.k == k + 1
+        a = bank.step(Observation(k, k * preset.dt_s, obs, None, sensed)).acc_m_s2
+        plant.step(as_f32(a), preset.dt_s)
+
+
+def test_act_before_exchange_and_act_twice_without_finish_are_clear_errors():
+    c = make_controller("mfg", DEFAULT, np.zeros((1, 2)))
+    own = np.array([[150.0, 100.0, 0.0, 0.0]])
+    with pytest.raises(RuntimeError, match="t = 0 exchange"):
+        c.act(Observation(0, 0.0, own))
+    c.exchange_t0(own, np.array([0]), np.array([0]), np.zeros((1, 2)))
+    c.act(Observation(0, 0.0, own))
+    with pytest.raises(RuntimeError, match="not finished"):
+        c.act(Observation(1, 0.5, own))
+    c.finish()
+    c.act(Observation(1, 0.5, own))
+
+
 def test_slots_are_site_plus_offset_from_the_group_centroid():
     pos = np.array([[0.0, 0.0], [2.0, 0.0], [10.0, 10.0], [12.0, 14.0]])
     sites = np.array([[5.0, 5.0], [5.0, 5.0], [-1.0, 0.0], [-1.0, 0.0]])
