@@ -347,6 +347,24 @@ class Autopilot:
         dest = np.asarray(self.ctrl.destinations_m, dtype=float)[0]
         return bool(np.linalg.norm(state[:2] - dest) <= self.cfg.arrival_tol_m)
 
+    # ---------------------------------------------------------------- the control step
+    # A controller that splits its step (preset_default.DefaultMFGController: prepare / act /
+    # finish, bit-identical to step) gets only act() between the position and the setpoint;
+    # any other controller's step() is the action and the rest at once.
+    def _prepare(self, k: int) -> None:
+        prepare = getattr(self.ctrl, "prepare", None)
+        if prepare is not None:
+            prepare(k)
+
+    def _act(self, obs: Observation):
+        act = getattr(self.ctrl, "act", None)
+        return act(obs) if act is not None else self.ctrl.step(obs)
+
+    def _finish(self) -> None:
+        finish = getattr(self.ctrl, "finish", None)
+        if finish is not None:
+            finish()
+
     # ---------------------------------------------------------------- loops
     def run_lockstep(self, p0: LocalPositionNed) -> str:
         cfg = self.cfg
@@ -368,23 +386,26 @@ class Autopilot:
             state = _state_of(p)
             obs = self._observe(k, state, t_ms / 1000.0)
             clock.mark()
-            info = self.ctrl.step(obs)
+            info = self._act(obs)
             clock.mark()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
             sp = (float(acc[0]), float(acc[1]), 0.0)
             # the setpoint goes on the wire first: the vehicle (and the world barrier behind it)
-            # steps while this process writes its log line and checkpoint
+            # steps while this process finishes the step, writes its log line and checkpoint
             deadline = time.monotonic() + self.cfg.step_timeout_s
             self.link.send_acc_setpoint(sp, t_ms)
             clock.mark()
-            timing = clock.record(("observe", "control", "send"))
+            self._finish()
+            clock.mark()
+            timing = clock.record(("observe", "control", "send", "finish"))
             timing.update(carried)      # the previous step's log line + checkpoint, and its wait for this position
             self._record(k, t_ms / 1000.0, state, acc, info, obs, None, timing)
             self._checkpoint(k)
+            self._prepare(k + 1)        # the next position is stamped after t_ms: step k + 1 or later
             clock.mark()
             p = self._lockstep_await_position(sp, t_ms, deadline)
             clock.mark()
-            carried = clock.phases(("log", "wait"), first=3)
+            carried = clock.phases(("log", "wait"), first=4)
 
     def _lockstep_await_position(self, sp: tuple[float, float, float], t_ms: int, deadline: float) -> LocalPositionNed:
         """Wait for the position stamped after t_ms (the setpoint stamped t_ms was sent),
@@ -416,8 +437,10 @@ class Autopilot:
             if k >= cfg.steps:
                 return "mission_time"
             tick_unix = self.mission_start_unix_s + k * self.dt_s
+            # one wake-up per tick (stop.set() from the signal handler ends the wait at once); the
+            # wait is re-checked against the wall clock at least every second
             while not self.stop.is_set() and time.time() < tick_unix:
-                self.stop.wait(min(0.05, max(0.0, tick_unix - time.time())))
+                self.stop.wait(min(1.0, max(0.0, tick_unix - time.time())))
             if self.stop.is_set():
                 return "signal"
             tick = time.monotonic()
@@ -425,6 +448,8 @@ class Autopilot:
                 self._await_vehicle_return()
                 stale = False
                 continue
+            # the observation-free part of step k first, then the position received after it
+            self._prepare(k)
             last = self.link.latest_local_position()
             try:
                 p = self.link.wait_local_position(None if last is None else last.time_boot_ms, timeout_s=cfg.telemetry_stale_s)
@@ -446,7 +471,7 @@ class Autopilot:
             last_k = k
             obs = self._observe(k, state, p.time_boot_ms / 1000.0)
             clock.mark()
-            info = self.ctrl.step(obs)
+            info = self._act(obs)
             clock.mark()
             t_computed = time.monotonic()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
@@ -454,13 +479,16 @@ class Autopilot:
             sent_monotonic_s = self.link.send_acc_setpoint(sp)
             clock.mark()
             self.link.set_held_setpoint(sp)
+            self._finish()
+            clock.mark()
             # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
-            # transport has one) -> this setpoint handed to the kernel; logging and the
-            # checkpoint come after it. Split: until this loop had the position (receive
-            # thread, wake-up), the observation + control step, the send.
+            # transport has one) -> this setpoint handed to the kernel; the rest of the step
+            # (finish), logging and the checkpoint come after it. Split: until this loop had
+            # the position (receive thread, wake-up), the observation + action, the send.
             latency = (sent_monotonic_s - p.received_monotonic_s,
                        t_woken - p.received_monotonic_s, t_computed - t_woken)
-            self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency, clock.record(("observe", "control", "send")))
+            self._record(k, p.time_boot_ms / 1000.0, state, acc, info, obs, latency,
+                         clock.record(("observe", "control", "send", "finish")))
             self._checkpoint(k)
             ended = self._check_mode()
             if ended:
