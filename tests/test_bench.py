@@ -66,3 +66,18 @@ def test_latency_p99_confidence_interval_brackets_the_true_p99_and_counts_the_sa
         assert st["over_target"] == int(np.sum(s * 1e3 > 5.0))
     # then the 95 % interval covers the true p99 in 95 +- 4 % of the repeats (3 binomial sigma over 200 runs ~ 4.6 %)
     assert 0.91 <= hits / 200 <= 0.995
+
+
+def test_host_floor_interpolates_the_meter_per_cpu_and_skips_unmeasured_cpus():
+    from mfg_swarm.bench import format_table, host_floor
+
+    h = {"cpu": 0, "fifo": True, "duration_s": 10.0, "per_s_over_2ms": 1.0, "per_s_over_5ms": 0.1, "max_ms": 6.0,
+         "lost_fraction": 0.01, "job_exceedance": {"1": 0.001, "2": 0.003, "3": 0.01, "4": 0.02}}
+    assert host_floor([h, {"cpu": 1, "error": "x"}], 2.5) == [pytest.approx(0.0065), None]
+    assert host_floor([h], 9.0) == [0.02]           # beyond the grid: the longest job's figure (a lower bound)
+    res = {"machine": {"nproc": 2, "cpu_model": "x"}, "load_before": [0.0],
+           "latency": {"n_vehicles": 4, "host": [h, {"cpu": 1, "error": "x"}],
+                       "latency": {"n": 10, "p50_ms": 2.5, "p99_ms": 6.0, "max_ms": 7.0, "p99_ci95_ms": [5.0, 7.0],
+                                   "over_target": 1, "target_ms": 5.0, "host_floor_over_target": [0.0065, None]}}}
+    table = format_table(res)
+    assert "host floor for a p50-long job: 0.65 %" in table and "CPU 1: not measured" in table and "stops > 2 ms 1.0/s" in table
