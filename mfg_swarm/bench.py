@@ -22,6 +22,7 @@ Sections
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -293,7 +294,54 @@ class _ChildSampler:
         return out
 
 
-def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = "mfg", rt_priority: int | None = None) -> dict:
+class _CpuIsolation:
+    """A flight computer's dedicated core on a shared machine: controller ``instance`` (every
+    thread) on ``own_cpu``, this process and every other process of the swarm on the other
+    CPUs. Children are pinned as they appear (polled; a thread started later is pinned at the
+    next poll); the flight's first steps come seconds after the processes start."""
+
+    def __init__(self, own_cpu: int, instance: int = 0, period_s: float = 0.2) -> None:
+        import psutil
+
+        self.psutil, self.own, self.instance, self.period_s = psutil, own_cpu, instance, period_s
+        self.rest = set(os.sched_getaffinity(0)) - {own_cpu}
+        if not self.rest:
+            raise ValueError(f"isolating CPU {own_cpu} leaves no CPU for the rest of the swarm")
+        self.pinned: set[int] = set()
+        self.stop = threading.Event()
+        self.th = threading.Thread(target=self._run, daemon=True)
+
+    def _is_isolated(self, cmd: list[str]) -> bool:
+        return ("mfg_autopilot.cli" in " ".join(cmd) and "--instance" in cmd
+                and cmd[cmd.index("--instance") + 1:cmd.index("--instance") + 2] == [str(self.instance)])
+
+    def _run(self) -> None:
+        while not self.stop.is_set():
+            for c in self.psutil.Process().children(recursive=True):
+                try:
+                    mine = self._is_isolated(c.cmdline())
+                    for t in os.listdir(f"/proc/{c.pid}/task"):
+                        if (c.pid, int(t)) not in self.pinned:
+                            os.sched_setaffinity(int(t), {self.own} if mine else self.rest)
+                            self.pinned.add((c.pid, int(t)))
+                except (self.psutil.Error, OSError):
+                    pass
+            self.stop.wait(self.period_s)
+
+    def __enter__(self):
+        self._before = os.sched_getaffinity(0)
+        os.sched_setaffinity(0, self.rest)
+        self.th.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.th.join()
+        os.sched_setaffinity(0, self._before)
+
+
+def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = "mfg", rt_priority: int | None = None,
+                 isolate_cpu: int | None = None) -> dict:
     from mfg_swarm.launcher import RunConfig, run_swarm
     from mfg_swarm.scenarios import make_scenario
 
@@ -326,7 +374,8 @@ def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = 
     w = threading.Thread(target=watch, daemon=True)
     load0 = _load()
     t0 = time.perf_counter()
-    with samp:
+    iso = _CpuIsolation(isolate_cpu) if isolate_cpu is not None else contextlib.nullcontext()
+    with iso, samp:
         w.start()
         _, metrics = run_swarm(cfg)
         t1 = time.perf_counter()
@@ -419,12 +468,14 @@ def bench_swarm(out: Path, quick: bool = False, repeats: int | None = None) -> l
     return res
 
 
-def _latency_of(d: Path) -> tuple[dict, dict, bool | None]:
+def _latency_of(d: Path | list[Path], pattern: str = "controller*.jsonl") -> tuple[dict, dict, bool | None]:
+    """Latency statistics pooled over the controller logs matching ``pattern`` of the run folder(s) ``d``."""
     from mfg_swarm.flightlog import read_controller_log
 
     lat, wake, compute, rt = [], [], [], None
     phases: dict[str, list[float]] = {}
-    for f in sorted((d / "controllers").glob("controller*.jsonl")):
+    files = [f for x in ([d] if isinstance(d, Path) else d) for f in sorted((x / "controllers").glob(pattern))]
+    for f in files:
         rec = read_controller_log(f)
         for r in rec.steps:
             if r.get("latency_ms") is not None:
@@ -484,24 +535,37 @@ def host_floor(host: list[dict], job_ms: float) -> list[float | None]:
 
 
 def bench_latency(out: Path, quick: bool = False, rt_priority: int | None = 50) -> dict:
-    """A real-time flight of N = 4 (quick: N = 1, 10 s; else 50 s = 100 steps at dt = 0.5 s: they arrive at ~55 s), once
-    with normal scheduling and once with the controllers at SCHED_FIFO `rt_priority` (as a flight
-    computer runs its controller; recorded as not applied where the OS refuses it)."""
+    """Real-time flights of N = 4 (quick: N = 1, 10 s; else 50 s = 100 steps at dt = 0.5 s: they
+    arrive at ~55 s): once with normal scheduling, once with the controllers at SCHED_FIFO
+    ``rt_priority`` (as a flight computer runs its controller; recorded as not applied where the
+    OS refuses it), and (not quick, 2 CPUs or more) twice more at SCHED_FIFO with controller 0
+    alone on the last CPU and everything else on the others (its latency only: a flight
+    computer's dedicated core). The host's own noise is measured just before (``host_noise``)."""
     n, steps = (1, 20) if quick else (4, 100)
-    host = host_noise(1.0 if quick else 10.0)          # the machine's own share, measured just before
+    host = host_noise(1.0 if quick else 10.0)
+    res: dict = {"n_vehicles": n, "steps": steps, "host": host}
+
+    def config(dirs: list[Path], pattern: str = "controller*.jsonl") -> tuple[dict, dict, bool | None]:
+        st, split, applied = _latency_of(dirs, pattern)
+        if st.get("n"):
+            st["host_floor_over_target"] = host_floor(host, st["p50_ms"])
+        return st, split, applied
+
     d = out / f"latency-n{n}"
-    rec = _swarm_point(n, steps, False, d)
-    st, split, _ = _latency_of(d)
-    res = {"n_vehicles": n, "steps": steps, "host": host, "latency": st, "latency_split": split, "flight": rec}
-    if st.get("n"):
-        st["host_floor_over_target"] = host_floor(host, st["p50_ms"])
+    res["flight"] = _swarm_point(n, steps, False, d)
+    res["latency"], res["latency_split"], _ = config([d])
     if rt_priority is not None:
         d_rt = out / f"latency-n{n}-rt{rt_priority}"
         rec_rt = _swarm_point(n, steps, False, d_rt, rt_priority=rt_priority)
-        st_rt, split_rt, applied = _latency_of(d_rt)
-        if st_rt.get("n"):
-            st_rt["host_floor_over_target"] = host_floor(host, st_rt["p50_ms"])
+        st_rt, split_rt, applied = config([d_rt])
         res["rt"] = {"priority": rt_priority, "applied": applied, "latency": st_rt, "latency_split": split_rt, "flight": rec_rt}
+        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        if not quick and len(cpus) >= 2:
+            dirs = [out / f"latency-n{n}-rt{rt_priority}-own-cpu-{r}" for r in range(2)]
+            recs = [_swarm_point(n, steps, False, x, rt_priority=rt_priority, isolate_cpu=cpus[-1]) for x in dirs]
+            st_i, split_i, applied_i = config(dirs, "controller0.jsonl")
+            res["own_cpu"] = {"priority": rt_priority, "applied": applied_i, "cpu": cpus[-1], "flights": len(dirs),
+                              "latency": st_i, "latency_split": split_i, "flight": recs}
     return res
 
 
@@ -591,6 +655,13 @@ def format_table(res: dict) -> str:
             L.append(f"  controllers at SCHED_FIFO {rt['priority']} ({'applied' if rt['applied'] else 'NOT applied: normal scheduling'}): "
                      + (_latency_line(lr) if lr["n"] else "no steps"))
             for part, st in rt.get("latency_split", {}).items():
+                L.append(f"    of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
+        oc = res["latency"].get("own_cpu")
+        if oc:
+            lo = oc["latency"]
+            L.append(f"  controller 0 alone on CPU {oc['cpu']} (the rest of the swarm on the other CPUs), SCHED_FIFO {oc['priority']}"
+                     f"{'' if oc['applied'] else ' NOT applied'}, {oc['flights']} flights: " + (_latency_line(lo) if lo["n"] else "no steps"))
+            for part, st in oc.get("latency_split", {}).items():
                 L.append(f"    of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
     if "pde" in res:
         L.append("\nLearned vs solved (bench/pde_bench.py, N = 9, coarsest grid): time per decision")
