@@ -81,3 +81,22 @@ def test_host_floor_interpolates_the_meter_per_cpu_and_skips_unmeasured_cpus():
                                    "over_target": 1, "target_ms": 5.0, "host_floor_over_target": [0.0065, None]}}}
     table = format_table(res)
     assert "host floor for a p50-long job: 0.65 %" in table and "CPU 1: not measured" in table and "stops > 2 ms 1.0/s" in table
+
+
+def test_cpu_isolation_picks_only_the_named_controller_and_keeps_a_cpu_for_the_rest():
+    import os
+
+    from mfg_swarm.bench import _CpuIsolation
+
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        with pytest.raises(ValueError, match="leaves no CPU"):
+            _CpuIsolation(cpus[0])
+        return
+    iso = _CpuIsolation(cpus[-1], instance=0)
+    assert iso.rest == set(cpus[:-1])
+    ctl = ["python", "-m", "mfg_autopilot.cli", "--instance", "{}", "--connect", "udpin:127.0.0.1:1"]
+    assert iso._is_isolated([x.format(0) for x in ctl])
+    assert not iso._is_isolated([x.format(10) for x in ctl])        # not a prefix match
+    assert not iso._is_isolated(["python", "-m", "mock_vehicle.cli", "--instance", "0"])
+    assert not iso._is_isolated(["python", "-m", "mfg_autopilot.cli", "--instance"])     # malformed: no value
