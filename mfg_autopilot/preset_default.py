@@ -191,7 +191,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
-        self._pending: tuple | None = None      # act()'s deferred work for finish()
+        self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """The one exchange: every row gets the same plan from the same (N, 4) states."""
@@ -370,7 +370,7 @@ class DefaultMFGController(_DefaultBase):
         if not tp.feedback:
             a_fb = np.zeros_like(a_fb)
         a = self._backstop(own, a_plan + a_fb, obs)
-        self._pending = (fpk_args,)
+        self._pending = fpk_args or ()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
 
     def finish(self) -> None:
@@ -378,8 +378,8 @@ class DefaultMFGController(_DefaultBase):
         the next step on) and the plan's advance to the next step. No-op without a pending act()."""
         if self._pending is None:
             return
-        (fpk_args,), self._pending = self._pending, None
-        if fpk_args is not None:
+        fpk_args, self._pending = self._pending, None
+        if fpk_args:
             own, a_plan, grad_psi, centroid, rate, hv_tr = fpk_args
             self._fpk_update(own, a_plan + optimal_action(grad_psi, self.preset.cost.c3), centroid, rate, hv_tr)
         self.plan.advance()

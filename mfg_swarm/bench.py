@@ -307,7 +307,7 @@ class _CpuIsolation:
         self.rest = set(os.sched_getaffinity(0)) - {own_cpu}
         if not self.rest:
             raise ValueError(f"isolating CPU {own_cpu} leaves no CPU for the rest of the swarm")
-        self.pinned: set[int] = set()
+        self.pinned: set[tuple[int, int]] = set()      # (pid, tid) already pinned
         self.stop = threading.Event()
         self.th = threading.Thread(target=self._run, daemon=True)
 
@@ -501,11 +501,16 @@ def _latency_of(d: Path | list[Path], pattern: str = "controller*.jsonl") -> tup
     return st, split, rt
 
 
+def _cpus() -> list[int]:
+    """The CPUs this process may run on (empty where the OS does not say)."""
+    return sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+
+
 def host_noise(duration_s: float) -> list[dict]:
     """mfg_swarm.hiccup on every CPU this process may use, all at once (one pinned child each):
     how often and how long each CPU stops running a SCHED_FIFO thread, and the probability
     that a job of 0.5-4.5 ms of CPU ends after the latency target there."""
-    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [None]
+    cpus = _cpus() or [None]
     procs = [subprocess.Popen([sys.executable, "-m", "mfg_swarm.hiccup", "--duration-s", str(duration_s),
                                "--limit-ms", str(LATENCY_TARGET_MS)] + ([] if c is None else ["--cpu", str(c)]),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in cpus]
@@ -559,7 +564,7 @@ def bench_latency(out: Path, quick: bool = False, rt_priority: int | None = 50) 
         rec_rt = _swarm_point(n, steps, False, d_rt, rt_priority=rt_priority)
         st_rt, split_rt, applied = config([d_rt])
         res["rt"] = {"priority": rt_priority, "applied": applied, "latency": st_rt, "latency_split": split_rt, "flight": rec_rt}
-        cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        cpus = _cpus()
         if not quick and len(cpus) >= 2:
             dirs = [out / f"latency-n{n}-rt{rt_priority}-own-cpu-{r}" for r in range(2)]
             recs = [_swarm_point(n, steps, False, x, rt_priority=rt_priority, isolate_cpu=cpus[-1]) for x in dirs]
@@ -590,6 +595,10 @@ def _latency_line(st: dict) -> str:
     if fl:
         line += f"; host floor for a p50-long job: {' / '.join(fl)} over {st.get('target_ms', LATENCY_TARGET_MS):g} ms (per CPU)"
     return line
+
+
+def _split_lines(split: dict, indent: str) -> list[str]:
+    return [f"{indent}of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms" for part, st in split.items()]
 
 
 def format_table(res: dict) -> str:
@@ -647,22 +656,19 @@ def format_table(res: dict) -> str:
                      f"lost {h['lost_fraction'] * 100:.1f} %" + (f", steal {h['steal_fraction'] * 100:.1f} %" if "steal_fraction" in h else "")
                      + "; P(job ends > target) for 1/2/3/4 ms jobs: "
                      + " / ".join(f"{h['job_exceedance'][k] * 100:.2f} %" for k in ("1", "2", "3", "4")))
-        for part, st in res["latency"].get("latency_split", {}).items():
-            L.append(f"  of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
+        L += _split_lines(res["latency"].get("latency_split", {}), "  ")
         rt = res["latency"].get("rt")
         if rt:
             lr = rt["latency"]
             L.append(f"  controllers at SCHED_FIFO {rt['priority']} ({'applied' if rt['applied'] else 'NOT applied: normal scheduling'}): "
                      + (_latency_line(lr) if lr["n"] else "no steps"))
-            for part, st in rt.get("latency_split", {}).items():
-                L.append(f"    of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
+            L += _split_lines(rt.get("latency_split", {}), "    ")
         oc = res["latency"].get("own_cpu")
         if oc:
             lo = oc["latency"]
             L.append(f"  controller 0 alone on CPU {oc['cpu']} (the rest of the swarm on the other CPUs), SCHED_FIFO {oc['priority']}"
                      f"{'' if oc['applied'] else ' NOT applied'}, {oc['flights']} flights: " + (_latency_line(lo) if lo["n"] else "no steps"))
-            for part, st in oc.get("latency_split", {}).items():
-                L.append(f"    of which {part}: p50 {st['p50_ms']:.3f} ms, p99 {st['p99_ms']:.3f} ms")
+            L += _split_lines(oc.get("latency_split", {}), "    ")
     if "pde" in res:
         L.append("\nLearned vs solved (bench/pde_bench.py, N = 9, coarsest grid): time per decision")
         for r in res["pde"]["timing"]:
