@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from mfg_autopilot.controller import Neighbours, Observation, make_controller
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.presets import make_controller, preset_by_name
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import as_f32, plant_params_for
 from mock_vehicle.plant import SwarmPlant

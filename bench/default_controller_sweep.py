@@ -21,7 +21,7 @@ import sys
 
 import numpy as np
 
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import GustParams, SimConfig, simulate
 

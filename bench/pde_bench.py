@@ -26,11 +26,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mfg_autopilot.controller import Neighbours, Observation, make_controller
-from mfg_autopilot.features import make_sigma_H
-from mfg_autopilot.params import PAPER
-from mfg_autopilot.pde import solve_stationary_hjb
-from mfg_autopilot.pde_control import HJBPDEController, MFGPDEController, PDEParams
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.paper.features import make_sigma_H
+from mfg_autopilot.paper.params import PAPER
+from mfg_autopilot.pde.control import HJBPDEController, MFGPDEController, PDEParams
+from mfg_autopilot.pde.solver import solve_stationary_hjb
+from mfg_autopilot.presets import make_controller
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, simulate
 

@@ -86,8 +86,8 @@ def _load() -> list[float]:
 
 # -- controller step, one vehicle ---------------------------------------------------------
 def bench_step(quick: bool = False) -> list[dict]:
-    from mfg_autopilot.controller import Neighbours, Observation, make_controller
-    from mfg_autopilot.params import preset_by_name
+    from mfg_autopilot.interface import Neighbours, Observation
+    from mfg_autopilot.presets import make_controller, preset_by_name
     from mfg_swarm.scenarios import make_scenario
 
     steps = 40 if quick else 300
@@ -138,7 +138,7 @@ def bench_step(quick: bool = False) -> list[dict]:
 # -- simulator scaling ---------------------------------------------------------------------
 _SIM_CHILD = r"""
 import json, resource, sys, time
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, simulate
 import numpy as np
@@ -197,7 +197,7 @@ _SHORT_STEPS = 10
 def bench_sim(quick: bool = False, timeout_s: float = 900.0, ns: tuple[int, ...] | None = None,
               repeats: int | None = None) -> dict:
     """Default preset, 200 simulated seconds = 400 steps at dt = 0.5 s (quick: 20 steps)."""
-    from mfg_autopilot.params import preset_by_name
+    from mfg_autopilot.presets import preset_by_name
 
     steps = 20 if quick else int(round(200.0 / preset_by_name("default").dt_s))
     ns = ns or ((25, 81) if quick else (25, 81, 1000, 10000))
@@ -261,7 +261,7 @@ class _ChildSampler:
                         self.rss[c.pid] = max(self.rss.get(c.pid, 0), c.memory_info().rss)
                         if c.pid not in self.role:
                             cmd = " ".join(c.cmdline())
-                            self.role[c.pid] = ("controller" if "mfg_autopilot.cli" in cmd else "mock" if "mock_vehicle.cli" in cmd
+                            self.role[c.pid] = ("controller" if "mfg_autopilot.runtime.cli" in cmd else "mock" if "mock_vehicle.cli" in cmd
                                                 else "router" if "zenoh_router" in cmd else "world" if "mock_vehicle.world" in cmd
                                                 else "other")
                 except (self.psutil.NoSuchProcess, self.psutil.AccessDenied, self.psutil.ZombieProcess):
@@ -312,7 +312,7 @@ class _CpuIsolation:
         self.th = threading.Thread(target=self._run, daemon=True)
 
     def _is_isolated(self, cmd: list[str]) -> bool:
-        return ("mfg_autopilot.cli" in " ".join(cmd) and "--instance" in cmd
+        return ("mfg_autopilot.runtime.cli" in " ".join(cmd) and "--instance" in cmd
                 and cmd[cmd.index("--instance") + 1:cmd.index("--instance") + 2] == [str(self.instance)])
 
     def _run(self) -> None:
@@ -342,10 +342,9 @@ class _CpuIsolation:
 
 def _swarm_point(n: int, steps: int, lockstep: bool, out_dir: Path, mode: str = "mfg", rt_priority: int | None = None,
                  isolate_cpu: int | None = None) -> dict:
+    from mfg_autopilot.presets import preset_by_name
     from mfg_swarm.launcher import RunConfig, run_swarm
     from mfg_swarm.scenarios import make_scenario
-
-    from mfg_autopilot.params import preset_by_name
 
     dt = preset_by_name("default").dt_s
     cfg = RunConfig(scenario=make_scenario("paper", n), mode=mode, preset_name="default", out=out_dir, seed=0, steps=steps,

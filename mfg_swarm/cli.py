@@ -8,8 +8,8 @@ import logging
 import sys
 from pathlib import Path
 
-from mfg_autopilot.controller import MODES
-from mfg_autopilot.params import preset_by_name, radio_range_m
+from mfg_autopilot.paper.params import radio_range_m
+from mfg_autopilot.presets import MODES, preset_by_name
 
 __all__ = ["main", "build_parser"]
 

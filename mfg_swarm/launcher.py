@@ -30,8 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mfg_autopilot.controller import make_controller
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.presets import make_controller, preset_by_name
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_vehicle_tlog, realtime_grid
@@ -148,16 +147,16 @@ def _check_ports_free(kind: int, ports: list[int], what: str) -> None:
                                   f"(e.g. another swarm or PX4 SITL), or choose another base port") from None
 
 
-_WARM_IMPORTS = ("import sys, mfg_autopilot.cli, mfg_autopilot.runtime, mfg_autopilot.zenoh_router, mock_vehicle.cli, "
-                 "mock_vehicle.world, mfg_autopilot.preset_default, mfg_autopilot.pde_control, scipy.spatial\n"
-                 "from mfg_autopilot import kernels, backstop_kernels\n"
-                 "kernels.warm_up(); backstop_kernels.warm_up()\n"
+_WARM_IMPORTS = ("import sys, mfg_autopilot.runtime.cli, mfg_autopilot.runtime.autopilot, mfg_autopilot.runtime.router, mock_vehicle.cli, "
+                 "mock_vehicle.world, mfg_autopilot.guidance.controller, mfg_autopilot.pde.control, scipy.spatial\n"
+                 "from mfg_autopilot.presets import warm_up\n"
+                 "warm_up()\n"
                  "specs = [getattr(m, '__spec__', None) for m in list(sys.modules.values())]\n"
                  "names = sorted({s.origin + '\\t' + s.cached for s in specs if s is not None and s.has_location "
                  "and s.cached and str(s.origin).endswith('.py')})\n"
                  "open(sys.argv[1], 'w', encoding='utf-8').write('\\n'.join(names))\n")
 """What the children import, and what loading the numba kernels from their cache imports (~70
-numba modules numba loads lazily; the controller presets are imported by name at run time).
+numba modules numba loads lazily; mfg_autopilot.presets imports the controller rooms on first use).
 The child lists every source module it loaded in the manifest file named by its argument."""
 
 
@@ -389,7 +388,9 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     if n < 1 or n > 253:
         raise LaunchError(f"N = {n} is impossible for a process swarm: MAVLink system ids allow 1..253 vehicles")
     if cfg.controller_rt_priority is not None:
-        from mfg_autopilot.runtime import check_rt_priority     # the controller's own rule (runtime pulls in Zenoh: only when asked)
+        from mfg_autopilot.runtime.autopilot import (
+            check_rt_priority,  # the controller's own rule (runtime pulls in Zenoh: only when asked)
+        )
         try:
             check_rt_priority(cfg.controller_rt_priority)
         except ValueError as exc:
@@ -446,7 +447,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     env = _bytecode_cache_env(py, out / "stderr" / "bytecode-cache.log")
     try:
         if use_router:
-            router.append(_Child("zenoh-router", [py, "-m", "mfg_autopilot.zenoh_router", "--zenoh-listen",
+            router.append(_Child("zenoh-router", [py, "-m", "mfg_autopilot.runtime.router", "--zenoh-listen",
                                                   f"tcp/127.0.0.1:{z_ports[n]}"]
                                  + (["--zenoh-config", cfg.zenoh_router_config] if cfg.zenoh_router_config else []),
                                  out / "stderr" / "zenoh-router.log", env))
@@ -473,7 +474,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
             vehicles.append(_Child(f"vehicle{i}", argv, out / "stderr" / f"vehicle{i}.log", env))
         ctrl_logs = [out / "controllers" / f"controller{i}.jsonl" for i in range(n)]
         for i in range(n):
-            argv = [py, "-m", "mfg_autopilot.cli", "--instance", str(i), "--connect", f"udpin:127.0.0.1:{mav_ports[i]}",
+            argv = [py, "-m", "mfg_autopilot.runtime.cli", "--instance", str(i), "--connect", f"udpin:127.0.0.1:{mav_ports[i]}",
                     "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", cfg.swarm or f"run{os.getpid()}",
                     "--mission", str(out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
                     "--state-dir", str(out / "controllers" / f"state{i}"),

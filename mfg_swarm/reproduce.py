@@ -23,7 +23,7 @@ MODES = (("hjb", 1.0, "HJB_1"), ("hjb", 100.0, "HJB_100"), ("mfg", None, "MFG"))
 
 def _one(args) -> dict:
     preset_name, mode, range_m, n, seed, steps, out = args
-    from mfg_autopilot.params import preset_by_name
+    from mfg_autopilot.presets import preset_by_name
 
     from .results import write_json_atomic, write_npz_atomic
     from .scenarios import make_scenario

@@ -34,15 +34,16 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mfg_autopilot.controller import MODES, HeardSummary, Neighbours, Observation, make_controller
-from mfg_autopilot.params import Preset
+from mfg_autopilot.interface import HeardSummary, Neighbours, Observation
+from mfg_autopilot.paper.params import Preset
+from mfg_autopilot.presets import MODES, make_controller
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals
-from .spatial import count_within, pairs_within_reach, pos_sums_by_tree, sorted_unique
 from .results import Trajectories, compute_metrics
 from .scenarios import Scenario
+from .spatial import count_within, pairs_within_reach, pos_sums_by_tree, sorted_unique
 
 __all__ = ["SimConfig", "GustParams", "simulate", "plant_params_for", "as_f32", "gust_acc_m_s2"]
 

@@ -12,7 +12,7 @@ vehicles, so that a vehicle's wind is the same whichever process simulates it:
 each vehicle's noise is one stream derived from ``(seed, vehicle_id)`` and consumed
 in a fixed order (2 standard normals for the initial wind velocity, then 2 per
 physics sub-step). The controller never imports it: it keeps its own model of the
-dynamics (A, B, G in ``mfg_autopilot.model``).
+dynamics (A, B, G in ``mfg_autopilot.paper.model``).
 
 Shapes: ``states`` is ``(n_vehicles, 4)`` with columns ``[x_m, y_m, vx_m_s, vy_m_s]``
 (paper frame: x = north, y = east of MAVLink LOCAL_NED).

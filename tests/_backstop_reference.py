@@ -11,9 +11,9 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mfg_autopilot.controller import Neighbours, Observation
-from mfg_autopilot.default_params import BackstopParams
-from mfg_autopilot.planner import cap_norm
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.paper.model import cap_norm
+from mfg_autopilot.safety.params import BackstopParams
 
 
 def _sensed(obs: Observation) -> Neighbours:

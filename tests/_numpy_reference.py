@@ -1,4 +1,4 @@
-"""The numpy formulation the numba kernels (mfg_autopilot/kernels.py) replaced, verbatim from
+"""The numpy formulation the numba kernels (mfg_autopilot/paper/kernels.py) replaced, verbatim from
 commit c6952e1 (features.MonomialFeatures tables, learners.hjb_update, DefaultMFGController._phi_G /
 _fpk_update, MeanField.fpk_update): the reference that tests/test_kernels.py compares the kernels with."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mfg_autopilot.costs import cs_kernel, phi_L_state
-from mfg_autopilot.model import nominal_drift, optimal_action, saturate, saturate_jacobian
+from mfg_autopilot.paper.costs import cs_kernel, phi_L_state
+from mfg_autopilot.paper.model import nominal_drift, optimal_action, saturate, saturate_jacobian
 
 
 class NumpyFeatures:

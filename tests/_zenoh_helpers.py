@@ -123,7 +123,7 @@ def vehicle_argv(swarm: str, vid: int, n: int, *, x: float = 0.0, y: float = 0.0
 
 
 def router_argv(listen: list[str], netns: str | None = None) -> list[str]:
-    argv = [sys.executable, "-m", "mfg_autopilot.zenoh_router"]
+    argv = [sys.executable, "-m", "mfg_autopilot.runtime.router"]
     for e in listen:
         argv += ["--zenoh-listen", e]
     if netns:
@@ -154,7 +154,7 @@ def _vehicle_main(argv: list[str] | None = None) -> int:
     import argparse
     import logging
 
-    from mfg_autopilot.exchange import ExchangeTimeout, SwarmExchange, ZenohSettings
+    from mfg_autopilot.runtime.exchange import ExchangeTimeout, SwarmExchange, ZenohSettings
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--swarm", required=True)

@@ -8,10 +8,10 @@ import time
 
 import numpy as np
 import pytest
-
 from _net import PYTHON, VENV_BIN, free_udp_port, free_udp_ports, spawn, wait_until
+
 from mavlink_bridge import LocalPositionNed, SetPositionTargetLocalNed, read_tlog
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, simulate
 
@@ -26,7 +26,7 @@ def _free_tcp_port() -> int:
 
 
 def _autopilot(url, *extra, n=1, instance=0):
-    return [PYTHON, "-m", "mfg_autopilot.cli", "--instance", str(instance), "--connect", url, "--n", str(n),
+    return [PYTHON, "-m", "mfg_autopilot.runtime.cli", "--instance", str(instance), "--connect", url, "--n", str(n),
             "--zenoh-listen", f"tcp/127.0.0.1:{_free_tcp_port()}", *extra]
 
 

@@ -6,15 +6,16 @@ from __future__ import annotations
 
 import dataclasses
 
+import _backstop_reference as ref
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-import _backstop_reference as ref
-from mfg_autopilot import backstop, backstop_kernels
-from mfg_autopilot.controller import Neighbours, Observation, make_controller
-from mfg_autopilot.default_params import BackstopParams
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.safety import backstop
+from mfg_autopilot.safety import kernels as backstop_kernels
+from mfg_autopilot.safety.params import BackstopParams
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import as_f32, plant_params_for
 from mock_vehicle.plant import SwarmPlant

@@ -95,8 +95,8 @@ def test_cpu_isolation_picks_only_the_named_controller_and_keeps_a_cpu_for_the_r
         return
     iso = _CpuIsolation(cpus[-1], instance=0)
     assert iso.rest == set(cpus[:-1])
-    ctl = ["python", "-m", "mfg_autopilot.cli", "--instance", "{}", "--connect", "udpin:127.0.0.1:1"]
+    ctl = ["python", "-m", "mfg_autopilot.runtime.cli", "--instance", "{}", "--connect", "udpin:127.0.0.1:1"]
     assert iso._is_isolated([x.format(0) for x in ctl])
     assert not iso._is_isolated([x.format(10) for x in ctl])        # not a prefix match
     assert not iso._is_isolated(["python", "-m", "mock_vehicle.cli", "--instance", "0"])
-    assert not iso._is_isolated(["python", "-m", "mfg_autopilot.cli", "--instance"])     # malformed: no value
+    assert not iso._is_isolated(["python", "-m", "mfg_autopilot.runtime.cli", "--instance"])     # malformed: no value

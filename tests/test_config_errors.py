@@ -5,7 +5,6 @@ import subprocess
 import sys
 
 import pytest
-
 from _net import free_udp_port
 
 pytestmark = pytest.mark.e2e
@@ -16,7 +15,7 @@ def _swarm(*args, timeout=60):
 
 
 def _autopilot(*args, timeout=60):
-    return subprocess.run([sys.executable, "-m", "mfg_autopilot.cli", "--instance", "0", "--n", "1", *args],
+    return subprocess.run([sys.executable, "-m", "mfg_autopilot.runtime.cli", "--instance", "0", "--n", "1", *args],
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -70,7 +69,7 @@ def test_rt_priority_is_applied_to_every_thread_or_refused_with_a_log_line():
     code = r"""
 import logging, os, sys, threading, json
 logging.basicConfig(level=logging.INFO, stream=sys.stderr)
-from mfg_autopilot.runtime import set_realtime_priority
+from mfg_autopilot.runtime.autopilot import set_realtime_priority
 stop = threading.Event()
 ts = [threading.Thread(target=stop.wait, daemon=True) for _ in range(3)]
 for t in ts: t.start()
@@ -105,7 +104,7 @@ def test_lockstep_mock_that_could_never_report_its_position_is_refused():
 
 
 def test_negative_fpk_weight_log_interval_is_refused():
-    from mfg_autopilot.cli import build_parser, config_from_args
+    from mfg_autopilot.runtime.cli import build_parser, config_from_args
 
     args = build_parser().parse_args(["--instance", "0", "--n", "1", "--mode", "mfg", "--log-fpk-weights-every", "-1"])
     with pytest.raises(ValueError, match="--log-fpk-weights-every must be >= 0, got -1"):

@@ -5,16 +5,16 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from mfg_autopilot.backstop import apply_backstop, backstop_acc, escape_acc
-from mfg_autopilot.controller import Neighbours, Observation, make_controller
-from mfg_autopilot.default_params import BackstopParams
-from mfg_autopilot.params import preset_by_name
-from mfg_autopilot.planner import MeanFieldPlan, slots_from_sites
+from mfg_autopilot.guidance.planner import MeanFieldPlan, slots_from_sites
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
+from mfg_autopilot.safety.params import BackstopParams
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import GustParams, SimConfig, as_f32, plant_params_for, simulate
 from mock_vehicle.plant import SwarmPlant
-from scipy.spatial import cKDTree
 
 DEFAULT = preset_by_name("default")
 

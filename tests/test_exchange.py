@@ -18,7 +18,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _zenoh_helpers import ep, free_tcp_port
-from mfg_autopilot.exchange import (
+
+from mfg_autopilot.runtime.exchange import (
     PAYLOAD_SIZE,
     ExchangeStopped,
     ExchangeTimeout,
@@ -229,7 +230,7 @@ def test_gossip_silent_vehicle_dropped_after_deadline_once(swarm_name, caplog):
     """Vehicle 2 stays present but stops publishing: the first step waits the deadline, the
     next steps do not wait for it; when it publishes again it is back."""
     a, b, c = make_swarm(swarm_name, 3)
-    with Opened([a, b, c]), caplog.at_level(logging.WARNING, logger="mfg_autopilot.exchange"):
+    with Opened([a, b, c]), caplog.at_level(logging.WARNING, logger="mfg_autopilot.runtime.exchange"):
         wait_until(lambda: a.present() == {0, 1, 2}, 5, "all present")
         t0 = time.monotonic()
         got = in_parallel([lambda: a.gossip(1, 1.0, [0, 0, 0, 0], 100, 0.6),
@@ -274,7 +275,7 @@ def test_garbage_on_state_keys_is_dropped_and_logged(swarm_name, caplog):
     a, b = make_swarm(swarm_name, 2)
     port = int(a.settings.listen[0].rsplit(":", 1)[1])
     conf = ZenohSettings(connect=(ep(port),)).to_config()
-    with Opened([a, b]), caplog.at_level(logging.WARNING, logger="mfg_autopilot.exchange"):
+    with Opened([a, b]), caplog.at_level(logging.WARNING, logger="mfg_autopilot.runtime.exchange"):
         with zenoh.open(conf) as z:
             wait_until(lambda: a.present() == {0, 1}, 5, "both present")
             time.sleep(0.2)  # let the third party learn a's subscriber

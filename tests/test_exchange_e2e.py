@@ -18,7 +18,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _zenoh_helpers import REPO, Proc, ep, free_tcp_port, router_argv, stop_all, vehicle_argv
-from mfg_autopilot.exchange import SwarmExchange, ZenohSettings
+
+from mfg_autopilot.runtime.exchange import SwarmExchange, ZenohSettings
 
 pytestmark = pytest.mark.e2e
 
@@ -163,7 +164,7 @@ def test_frozen_vehicle_drops_out_after_one_deadline(swarm_name):
 
 
 def test_client_mode_through_router_process_same_as_peer(swarm_name):
-    """A router process (python -m mfg_autopilot.zenoh_router) and 5 vehicles in client
+    """A router process (python -m mfg_autopilot.runtime.router) and 5 vehicles in client
     mode: same t = 0 exchange and same neighbours as the peer test."""
     n = 5
     port = free_tcp_port()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mfg_autopilot.features import make_sigma_F, make_sigma_H, sigma_F_exponents, sigma_H_exponents
+from mfg_autopilot.paper.features import make_sigma_F, make_sigma_H, sigma_F_exponents, sigma_H_exponents
 
 
 def test_feature_counts_match_the_paper():

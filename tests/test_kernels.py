@@ -1,4 +1,4 @@
-"""The numba kernels (mfg_autopilot/kernels.py) against the numpy code they replaced
+"""The numba kernels (mfg_autopilot/paper/kernels.py) against the numpy code they replaced
 (tests/_numpy_reference.py, verbatim from commit c6952e1), and their row independence.
 
 Tolerances (stated in the kernels' docstring and docs/benchmarks.md): feature tables
@@ -12,13 +12,13 @@ import sys
 import numpy as np
 import pytest
 
-import mfg_autopilot.preset_default as pd
-from mfg_autopilot import kernels
-from mfg_autopilot.features import make_sigma_F, make_sigma_H
-from mfg_autopilot.learners import hjb_update
-from mfg_autopilot.meanfield import MeanField
-from mfg_autopilot.model import nominal_drift, optimal_action
-from mfg_autopilot.params import preset_by_name
+import mfg_autopilot.guidance.controller as pd
+from mfg_autopilot.paper import kernels
+from mfg_autopilot.paper.features import make_sigma_F, make_sigma_H
+from mfg_autopilot.paper.learners import hjb_update
+from mfg_autopilot.paper.meanfield import MeanField
+from mfg_autopilot.paper.model import nominal_drift, optimal_action
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
@@ -196,8 +196,9 @@ def test_a_bank_of_one_starts_no_worker_thread():
     # given a fresh process that runs a default MFG controller of one vehicle for a few steps
     code = """
 import numpy as np, numba, threading
-from mfg_autopilot.controller import Observation, make_controller
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.interface import Observation
+from mfg_autopilot.presets import make_controller
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 p = preset_by_name("default"); sc = make_scenario("paper", 25)
 s0 = np.concatenate([sc.initial_pos_m, np.tile(p.cost.v_o, (25, 1))], axis=1)
@@ -248,9 +249,11 @@ import numpy as np, numba
 from numba.core.registry import CPUDispatcher
 from mavlink_bridge.adsb import adsb_states
 from mock_vehicle.proximity import DEFAULT_HOME_DEG, traffic_reports
-from mfg_autopilot import backstop_kernels, kernels
-from mfg_autopilot.controller import Neighbours, Observation, make_controller
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.safety import kernels as backstop_kernels
+from mfg_autopilot.paper import kernels
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.presets import make_controller
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.scenarios import make_scenario
 p = preset_by_name("default"); n = 25; sc = make_scenario("dense", n)
 s0 = np.concatenate([sc.initial_pos_m, np.tile(p.cost.v_o, (n, 1))], axis=1)

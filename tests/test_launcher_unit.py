@@ -43,7 +43,7 @@ def test_controller_status_reads_step_heads_and_full_events(tmp_path):
 
     import numpy as np
 
-    from mfg_autopilot.runtime import ControllerLog
+    from mfg_autopilot.runtime.autopilot import ControllerLog
     from mfg_swarm.launcher import _controller_status
 
     path = tmp_path / "controller0.jsonl"
@@ -84,9 +84,9 @@ def test_bytecode_cache_for_children_when_byte_code_writing_is_off(tmp_path, mon
     prefix = Path(env["PYTHONPYCACHEPREFIX"])
     assert prefix.parent == tmp_path and stat.S_IMODE(prefix.stat().st_mode) == 0o700
     assert env["PYTHONDONTWRITEBYTECODE"] == "1"          # the children still write nothing themselves
-    runtime_src = Path(launcher.__file__).resolve().parent.parent / "mfg_autopilot" / "runtime.py"
+    runtime_src = Path(launcher.__file__).resolve().parent.parent / "mfg_autopilot" / "runtime" / "autopilot.py"
     tag = sys.implementation.cache_tag
-    assert list(prefix.rglob(f"runtime.{tag}.pyc")), (tmp_path / "warm.log").read_text()
+    assert list(prefix.rglob(f"autopilot.{tag}.pyc")), (tmp_path / "warm.log").read_text()
     # numba's lazily imported modules (loaded with the cached kernels) are in it too: without them
     # every controller compiled ~70 of numba's modules from source at start-up (~0.8 CPU s each)
     assert [p for p in prefix.rglob(f"*.{tag}.pyc") if "numba" in p.parts and "np" in p.parts], "numba.np not cached"

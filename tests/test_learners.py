@@ -5,11 +5,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mfg_autopilot.costs import phi_L_state
-from mfg_autopilot.features import make_sigma_H
-from mfg_autopilot.learners import HJBLearner, MFGLearner, hjb_update, policy_action
-from mfg_autopilot.model import lqr_riccati_axis, lqr_value_weights
-from mfg_autopilot.params import PAPER, CostParams, LearnerParams
+from mfg_autopilot.paper.costs import phi_L_state
+from mfg_autopilot.paper.features import make_sigma_H
+from mfg_autopilot.paper.learners import HJBLearner, MFGLearner, hjb_update, policy_action
+from mfg_autopilot.paper.model import lqr_riccati_axis, lqr_value_weights
+from mfg_autopilot.paper.params import PAPER, CostParams, LearnerParams
 
 
 def _lq_preset(V=0.0, v_o=(0.0, 0.0)):
@@ -96,7 +96,7 @@ def test_regulariser_gradient_matches_finite_differences():
     w = rng.normal(size=(1, sigma.M)) * 1e-3
 
     def R(wv):
-        from mfg_autopilot.model import nominal_drift
+        from mfg_autopilot.paper.model import nominal_drift
         a = policy_action(sigma, wv, s, preset)
         st = s / sigma.scale
         return float(np.sum(st * nominal_drift(s, a, preset.cost) / sigma.scale))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mfg_autopilot.params import radio_range_m
+from mfg_autopilot.paper.params import radio_range_m
 from mfg_swarm.metrics import arrivals, collisions, motion_energy, segment_min_distance
 
 

@@ -1,5 +1,5 @@
-"""Finite-difference HJB / FPK / MFG solvers (mfg_autopilot.pde) and the solved controllers
-(mfg_autopilot.pde_control): convergence to the Riccati value, mass and positivity of the FPK,
+"""Finite-difference HJB / FPK / MFG solvers (mfg_autopilot.pde.solver) and the solved controllers
+(mfg_autopilot.pde.control): convergence to the Riccati value, mass and positivity of the FPK,
 the MFG fixed point, and the *-pde modes in the simulator."""
 
 import json
@@ -9,11 +9,21 @@ import sys
 import numpy as np
 import pytest
 
-from mfg_autopilot.controller import Neighbours, Observation, make_controller
-from mfg_autopilot.model import lqr_riccati_axis
-from mfg_autopilot.params import PAPER, CostParams
-from mfg_autopilot.pde import (AxisGrid, AxisProblem, axis_problems, cfl_dt_s, deposit_cic, fpk_forward_step,
-                               interp_bilinear, solve_mfg, solve_stationary_hjb)
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.paper.model import lqr_riccati_axis
+from mfg_autopilot.paper.params import PAPER, CostParams
+from mfg_autopilot.pde.solver import (
+    AxisGrid,
+    AxisProblem,
+    axis_problems,
+    cfl_dt_s,
+    deposit_cic,
+    fpk_forward_step,
+    interp_bilinear,
+    solve_mfg,
+    solve_stationary_hjb,
+)
+from mfg_autopilot.presets import make_controller
 from mfg_swarm.results import load_trajectories
 
 LQ_BOUND = 0.08      # relative max error of the finest grid on the inner region (measured 0.062)
@@ -157,7 +167,7 @@ def test_bench_pde_smoke():
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "bench"))
     from pde_bench import bench_pde
 
-    from mfg_autopilot.pde_control import PDEParams
+    from mfg_autopilot.pde.control import PDEParams
     r = bench_pde(n=4, steps=3, levels=((4.0, 1.0),), mfg_levels=1, inits=("lqr",),
                   pde_params=PDEParams(dx_m=4.0, dv_m_s=1.0, horizon_s=10.0), flights=False)
     assert set(r["distances"]) == {"hjb/lqr", "mfg/lqr"}

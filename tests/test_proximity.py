@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 import pytest
+from _net import free_udp_port, wait_until
 from scipy.spatial import cKDTree
 
 from mavlink_bridge import (
@@ -51,8 +52,6 @@ from mock_vehicle.world import (
     serve,
     unpack,
 )
-
-from _net import free_udp_port, wait_until
 
 
 def _random_states(rng: np.random.Generator, m: int) -> np.ndarray:
@@ -379,7 +378,7 @@ class _StubLink:
 
 
 def _autopilot(link, lockstep=True, preset="default"):
-    from mfg_autopilot.runtime import Autopilot, AutopilotConfig, ControllerLog
+    from mfg_autopilot.runtime.autopilot import Autopilot, AutopilotConfig, ControllerLog
 
     cfg = AutopilotConfig(instance=0, connect="udpin:127.0.0.1:1", mode="mfg", preset=preset, n=3, lockstep=lockstep,
                           sites_m=((0.0, 0.0), (1.0, 0.0), (2.0, 0.0)), step_timeout_s=0.1)
@@ -387,7 +386,7 @@ def _autopilot(link, lockstep=True, preset="default"):
 
 
 def test_runtime_fills_observation_sensed_from_the_steps_traffic_set():
-    from mfg_autopilot.runtime import AutopilotError
+    from mfg_autopilot.runtime.autopilot import AutopilotError
 
     states = _random_states(np.random.default_rng(9), 3)[1:]
     link = _StubLink({1500: traffic_reports(np.array([2, 1]), states, 1500)})

@@ -11,7 +11,7 @@ import psutil
 import pytest
 
 import mfg_swarm.sim as sim_mod
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.results import load_trajectories
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, as_f32, simulate

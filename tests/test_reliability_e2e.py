@@ -8,8 +8,8 @@ import socket
 import time
 
 import pytest
-
 from _net import PYTHON, free_udp_ports, spawn, wait_until
+
 from mavlink_bridge import SetPositionTargetLocalNed, StatusText, read_tlog
 
 pytestmark = pytest.mark.e2e
@@ -49,7 +49,7 @@ def test_controller_crash_hold_then_resume_without_new_exchange(tmp_path):
                 "--gcs-url", "none", "--initial-pos-m", f"150,{100 + 3 * i}", "--tlog", str(tmp_path / f"v{i}.tlog")]
 
     def ctrl(i, log):
-        argv = [PYTHON, "-m", "mfg_autopilot.cli", "--instance", str(i), "--n", "2", "--connect", f"udpin:127.0.0.1:{mav[i]}",
+        argv = [PYTHON, "-m", "mfg_autopilot.runtime.cli", "--instance", str(i), "--n", "2", "--connect", f"udpin:127.0.0.1:{mav[i]}",
                 "--mode", "mfg", "--preset", "paper", "--steps", str(steps), "--log", str(log), "--state-dir", str(tmp_path / f"state{i}"),
                 "--zenoh-listen", f"tcp/127.0.0.1:{zp[i]}", "--swarm", "crash", "--hold-on-arrival", "off"]
         return argv + (["--zenoh-connect", f"tcp/127.0.0.1:{zp[0]}"] if i else [])

@@ -6,10 +6,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 import mfg_swarm.sim as sim
-from mfg_autopilot.controller import HeardSummary, Neighbours, make_controller
-from mfg_autopilot.features import make_sigma_F
-from mfg_autopilot.meanfield import KDE_TRUNCATION_TOL, fit_initial_fpk_weights, kde_at
-from mfg_autopilot.params import preset_by_name
+from mfg_autopilot.interface import HeardSummary, Neighbours
+from mfg_autopilot.paper.features import make_sigma_F
+from mfg_autopilot.paper.meanfield import KDE_TRUNCATION_TOL, fit_initial_fpk_weights, kde_at
+from mfg_autopilot.presets import make_controller, preset_by_name
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, heard_summary_by_tree, simulate
 
@@ -121,7 +121,7 @@ def test_pairs_within_reach_are_exactly_the_brute_force_ones(seed):
                                                    ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
 def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
     # given runs in which the backstop acts (dense formation, a failed vehicle)
-    import mfg_autopilot.preset_default as pd
+    import mfg_autopilot.guidance.controller as pd
     cfg = SimConfig(scenario=make_scenario(scenario, n), mode=mode, preset=DEFAULT, seed=0, steps=160,
                     range_m=1.0 if mode == "hjb" else None, **extra)       # HJB_1: sensed but not heard vehicles
     # when the simulator delivers what the sensor sees within its range, and only within sensed_cutoff_m
@@ -140,7 +140,7 @@ def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch
                                                       ("crossing", 36, 100.0, {})])
 def test_hjb_without_sensing_when_every_sensed_vehicle_is_heard_flies_bit_identically(monkeypatch, scenario, n, range_m, extra):
     # given HJB_d with a radio range covering the 10 m sensor range (every sensed vehicle is also heard)
-    import mfg_autopilot.preset_default as pd
+    import mfg_autopilot.guidance.controller as pd
     cfg = SimConfig(scenario=make_scenario(scenario, n), mode="hjb", preset=DEFAULT, seed=1, steps=120, range_m=range_m, **extra)
     assert DEFAULT.backstop.sensor_range_m <= range_m
     # when the simulator skips sensing (the controller ignores sensed vehicles it heard) and when it senses
@@ -156,8 +156,8 @@ def test_hjb_without_sensing_when_every_sensed_vehicle_is_heard_flies_bit_identi
 
 def test_phi_G_equals_a_per_row_brute_force_quadrature():
     # given a default MFG bank of 25 after the t = 0 exchange, with FPK weights that differ per row
-    import mfg_autopilot.preset_default as pd
-    from mfg_autopilot.costs import cs_kernel
+    import mfg_autopilot.guidance.controller as pd
+    from mfg_autopilot.paper.costs import cs_kernel
     sc = make_scenario("paper", 25)
     s0 = np.concatenate([sc.initial_pos_m, np.tile(DEFAULT.cost.v_o, (25, 1))], axis=1)
     ctrl = pd.DefaultMFGController(DEFAULT, sc.destination_m)
@@ -185,7 +185,7 @@ def test_phi_G_equals_a_per_row_brute_force_quadrature():
 
 def test_mfg_sensed_cutoff_covers_the_escape_once_a_vehicle_leaves_the_plan():
     # given a default MFG bank after the t = 0 exchange, everyone on the plan
-    import mfg_autopilot.preset_default as pd
+    import mfg_autopilot.guidance.controller as pd
     sc = make_scenario("paper", 9)
     s0 = np.concatenate([sc.initial_pos_m, np.tile(DEFAULT.cost.v_o, (9, 1))], axis=1)
     ctrl = pd.DefaultMFGController(DEFAULT, sc.destination_m)

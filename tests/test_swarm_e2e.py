@@ -13,10 +13,10 @@ import numpy as np
 import psutil
 import pytest
 
+from mfg_autopilot.presets import preset_by_name
 from mfg_swarm.results import METRIC_KEYS, load_trajectories
-from mfg_swarm.sim import SimConfig, simulate
 from mfg_swarm.scenarios import make_scenario
-from mfg_autopilot.params import preset_by_name
+from mfg_swarm.sim import SimConfig, simulate
 
 pytestmark = pytest.mark.e2e
 

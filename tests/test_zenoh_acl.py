@@ -27,7 +27,8 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _zenoh_helpers import REPO, Proc, ep, free_tcp_port, router_argv, stop_all
-from mfg_autopilot.exchange import (
+
+from mfg_autopilot.runtime.exchange import (
     ExchangeError,
     StateMsg,
     SwarmExchange,

@@ -37,7 +37,8 @@ from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _zenoh_helpers import ep, free_tcp_port
-from mfg_autopilot.exchange import (
+
+from mfg_autopilot.runtime.exchange import (
     MAX_BUFFERED_STEPS,
     MAX_STEP,
     PAYLOAD_FORMAT,
@@ -111,7 +112,7 @@ class Rig:
 @pytest.fixture(scope="module")
 def rig():
     handler = KindLog()
-    lg = logging.getLogger("mfg_autopilot.exchange")
+    lg = logging.getLogger("mfg_autopilot.runtime.exchange")
     lg.addHandler(handler)
     r = Rig()
     r.log = handler

@@ -9,7 +9,7 @@ answer on ``mfg/<swarm>/init/<i>``: a vehicle whose credentials leak cannot spea
 vehicle. Every vehicle and the observer may listen to all of ``mfg/<swarm>/**``. Secrets are
 written owner-only (0600). Run the router with
 
-    python -m mfg_autopilot.zenoh_router --zenoh-config acl/router.json5
+    python -m mfg_autopilot.runtime.router --zenoh-config acl/router.json5
 
 and vehicle i with ``--zenoh-mode client --zenoh-config acl/vehicle<i>.json5``.
 """

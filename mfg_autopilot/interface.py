@@ -1,28 +1,34 @@
-"""The controller interface shared by the simulator and the per-vehicle process.
+"""The typed values between a controller and whoever drives it (the simulator or the vehicle process).
 
 A controller is a *bank* of n vehicle controllers (the simulator runs one bank for all N
-UAVs; ``mfg-autopilot`` runs a bank of one). Inputs are typed values; nothing here does
-I/O. Per control step t_k the caller gives an :class:`Observation`: the own observed
-states, the neighbour states actually heard this step (HJB_d only) and, for presets that
-have one, what the onboard proximity sensor sees. The controller returns a
-:class:`~mfg_autopilot.learners.StepInfo`.
+UAVs; ``mfg-autopilot`` runs a bank of one). Per control step t_k the caller gives an
+:class:`Observation`: the own observed states, the neighbour states actually heard this step
+(HJB_d only) and, for presets that have one, what the onboard proximity sensor sees. The
+controller returns a :class:`StepInfo`. Nothing here does I/O, and this module imports nothing
+of the project: every room may use it.
 
-Data flow: telemetry -> Observation -> controller.step -> acceleration setpoint.
+Data flow: telemetry -> Observation -> controller.step -> StepInfo.acc_m_s2 -> setpoint.
 """
 
 from __future__ import annotations
 
-import importlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
-from .costs import cs_kernel
-from .learners import HJBLearner, MFGLearner, StepInfo
-from .params import Preset
+__all__ = ["Neighbours", "HeardSummary", "Observation", "StepInfo", "Controller"]
 
-__all__ = ["Neighbours", "HeardSummary", "Observation", "Controller", "PaperHJBController", "PaperMFGController", "make_controller", "register"]
+
+@dataclass(frozen=True)
+class StepInfo:
+    """What one control step of a bank produced; every array has one row per vehicle."""
+
+    acc_m_s2: np.ndarray          # (n, 2) the action a* (saturated)
+    grad_evals: np.ndarray        # (n,) gradient evaluations this step (computation energy)
+    reg_active: np.ndarray        # (n,) bool, R_i(t) > 0 at some inner iteration (Fig. 4)
+    residual: np.ndarray          # (n,) last HJB residual H_hat
+    mf_evals: np.ndarray          # (n,) mean-field evaluations this step (MFG only)
 
 
 @dataclass(frozen=True)
@@ -87,7 +93,7 @@ class Observation:
 
 class Controller(Protocol):
     mode: str
-    preset: Preset
+    preset: object                   # the mfg_autopilot.paper.params.Preset (or subclass) it was built with
 
     @property
     def n(self) -> int: ...
@@ -126,111 +132,3 @@ class Controller(Protocol):
     def weights(self) -> dict[str, np.ndarray]:
         """Learned weights for logging (e.g. {"w_H": (n, 54), "w_F": (n, 69)})."""
         ...
-
-
-def _phi_G_from(own: np.ndarray, nb: Neighbours | None, preset: Preset) -> np.ndarray:
-    """phi_G of eq. 3 per bank row: mean Cucker-Smale kernel over the states heard."""
-    n = own.shape[0]
-    if nb is None or nb.states.shape[0] == 0:
-        return np.zeros(n)
-    k = cs_kernel(own[nb.owner], nb.states, preset.cost)
-    cnt = np.bincount(nb.owner, minlength=n)
-    return np.where(cnt > 0, np.bincount(nb.owner, k, n) / np.maximum(cnt, 1), 0.0)
-
-
-@dataclass
-class _Base:
-    preset: Preset
-    destination_site_m: np.ndarray               # (n, 2) mission destination of each bank row
-    _dest4: np.ndarray = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.destination_site_m = np.asarray(self.destination_site_m, dtype=float).reshape(-1, 2)
-        self._dest4 = np.concatenate([self.destination_site_m, np.zeros_like(self.destination_site_m)], axis=1)
-
-    @property
-    def n(self) -> int:
-        return self.destination_site_m.shape[0]
-
-    @property
-    def destinations_m(self) -> np.ndarray:
-        return self.destination_site_m
-
-
-class PaperHJBController(_Base):
-    """HJB_d with the paper's Algorithm 3 (the `paper` preset)."""
-
-    mode = "hjb"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.learner = HJBLearner(self.n, self.preset)
-
-    def exchange_t0(self, states, ids, own_index, sites_m) -> None:
-        """HJB_d has no swarm-wide exchange: states arrive with each step's gossip."""
-
-    def step(self, obs: Observation) -> StepInfo:
-        phi_g = _phi_G_from(obs.own_states, obs.neighbours, self.preset)
-        return self.learner.step(obs.own_states - self._dest4, phi_g)
-
-    def weights(self) -> dict[str, np.ndarray]:
-        return {"w_H": self.learner.w_H.copy()}
-
-
-class PaperMFGController(_Base):
-    """MFG learning control with the paper's Algorithm 4 (the `paper` preset)."""
-
-    mode = "mfg"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        self.learner = MFGLearner(self.n, self.preset)
-
-    def exchange_t0(self, states, ids, own_index, sites_m) -> None:
-        self.learner.initialise(np.asarray(states, dtype=float), np.asarray(sites_m, dtype=float), np.asarray(own_index))
-
-    def step(self, obs: Observation) -> StepInfo:
-        return self.learner.step(obs.own_states - self._dest4)
-
-    def weights(self) -> dict[str, np.ndarray]:
-        out = {"w_H": self.learner.w_H.copy()}
-        if self.learner.mean_field is not None:
-            out["w_F"] = self.learner.mean_field.w_F.copy()
-        return out
-
-
-MODES = ("mfg", "hjb", "mfg-pde", "hjb-pde")
-"""mfg / hjb: the learned controllers (Algorithms 4 / 3); *-pde: the solved ones (2 / 1)."""
-
-_FACTORIES: dict[tuple[str, str], object] = {
-    ("paper", "hjb"): PaperHJBController,
-    ("paper", "mfg"): PaperMFGController,
-    ("paper-lqr", "hjb"): PaperHJBController,
-    ("paper-lqr", "mfg"): PaperMFGController,
-}
-
-
-def register(preset_name: str, mode: str, factory) -> None:
-    """Register a controller factory ``factory(preset, destination_site_m) -> Controller``."""
-    _FACTORIES[(preset_name, mode)] = factory
-
-
-def make_controller(mode: str, preset: Preset, destination_site_m: np.ndarray) -> Controller:
-    """The controller bank for a mode ("mfg" | "hjb") and preset; one row per bank vehicle,
-    ``destination_site_m`` (n, 2) being each row's mission destination site."""
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
-    key = (preset.name, mode)
-    # modules register their factories on import: mfg_autopilot.preset_<name> for a
-    # preset's learned controllers, mfg_autopilot.pde_control for the solved ones.
-    for mod in ([f"preset_{preset.name}"] + (["pde_control"] if mode.endswith("-pde") else [])):
-        if key in _FACTORIES:
-            break
-        try:
-            importlib.import_module(f"{__package__}.{mod}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{__package__}.{mod}":
-                raise
-    if key not in _FACTORIES:
-        raise ValueError(f"no controller for preset {preset.name!r} in mode {mode!r}")
-    return _FACTORIES[key](preset, destination_site_m)

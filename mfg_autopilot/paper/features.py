@@ -13,7 +13,7 @@ physical state s, so that the models' nabla psi and nabla^2 psi are in SI units.
 
 Shapes: ``s`` (n, 4) with columns [x_m, y_m, vx_m_s, vy_m_s]; values (n, M);
 gradients (n, M, 4); Hessians (n, M, 4, 4); velocity-block Hessians (n, M, 2, 2).
-The tables are computed row by row by ``mfg_autopilot.kernels`` (numba); the learners
+The tables are computed row by row by ``mfg_autopilot.paper.kernels`` (numba); the learners
 use its fused kernels, which contract with the weights without building the tables.
 """
 
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
+from mfg_autopilot.paper import kernels
 
 __all__ = ["MonomialFeatures", "sigma_H_exponents", "sigma_F_exponents", "make_sigma_H", "make_sigma_F"]
 

@@ -35,9 +35,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import backstop_kernels
-from .default_params import BackstopParams
-from .planner import cap_norm
+from mfg_autopilot.paper.model import cap_norm
+from mfg_autopilot.safety import kernels as backstop_kernels
+from mfg_autopilot.safety.params import BackstopParams
 
 __all__ = ["backstop_acc", "apply_backstop", "escape_acc"]
 
@@ -149,3 +149,20 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active
+
+
+def warm_up() -> None:
+    """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it.
+    Through this module's public wrappers, with cases that reach every kernel (an escape
+    that acts, a half-plane push), so the argument types are exactly those of a control step (a kernel
+    first called with other types - a read-only or differently laid out array - would compile again,
+    seconds inside a control step: tests/test_kernels.py checks that a flight step compiles nothing new)."""
+    bp = BackstopParams()
+    own = np.array([[0.0, 0.0, 4.0, 0.0]])
+    a_nom = np.array([[0.2, -0.1]])
+    # a hovering (unplanned) vehicle 2 m ahead and a planned one alongside: the escape acts
+    sensed = np.array([[2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 4.0, 0.0]])
+    escape_acc(own, a_nom, sensed, np.array([0, 0]), np.array([True, False]), np.array([0.6, 0.0]),
+               np.array([0.8, 0.5]), bp, 0.5)
+    da = backstop_acc(own, np.array([[0.3, 0.05, 3.0, 0.0]]), np.array([0]), bp)
+    apply_backstop(a_nom, da, 2.0)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .params import CostParams
+from mfg_autopilot.paper.params import CostParams
 
 __all__ = ["phi_L_state", "phi_L", "cs_kernel", "phi_G_pairs", "phi_G_weighted"]
 

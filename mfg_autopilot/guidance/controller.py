@@ -2,20 +2,20 @@
 
 MFG (``DefaultMFGController``), per UAV, with no communication after t = 0:
   1. t = 0 exchange: the N states and sites -> slots and the interacting mean-field plan
-     (:class:`~mfg_autopilot.planner.MeanFieldPlan`; identical on every UAV).
+     (:class:`~mfg_autopilot.guidance.planner.MeanFieldPlan`; identical on every UAV).
   2. each step: own plan particle s_plan (N particles advanced once per control period),
      tracking error e = s - s_plan (leashed), the HJB value model psi = w_H^T sigma_H(e)
      (w_H(0) = the Riccati value of the tracking cost, then Algorithm 3/4's online NGD
      update against phi_G(s, m_hat) weighted by the FPK model),
      a = a_plan + a* with a* = -(1/(2 c3)) B^T grad psi (eq. 8, erratum 1 sign), capped;
-  3. the proximity backstop (:mod:`~mfg_autopilot.backstop`) with priority.
+  3. the proximity backstop (:mod:`~mfg_autopilot.safety.backstop`) with priority.
 HJB_d (``DefaultHJBController``): slots from the first step's heard states, the same goal
 term and closest-approach repulsion against the neighbours actually heard each step
 (priority saturation), and the same backstop.
 
 A bank row's output depends only on its own observation, what it heard/sensed, and the
 t = 0 exchange; the plan is computed once per bank from the exchanged states only.
-Parameters: :mod:`~mfg_autopilot.default_params`. Design and measurements:
+Parameters: :mod:`~mfg_autopilot.guidance.params`. Design and measurements:
 ``docs/default_controller.md``.
 """
 
@@ -26,20 +26,19 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import backstop_kernels, controller, kernels
-from .backstop import apply_backstop, backstop_acc, escape_acc
-from .controller import HeardSummary, Neighbours, Observation
-from .default_params import DefaultPreset
-from .features import make_sigma_F, make_sigma_H
-from .learners import StepInfo, hjb_update
-from .meanfield import fit_initial_fpk_weights
-from .model import lqr_value_weights, nominal_drift, optimal_action
-from .params import Preset
-from .planner import (MeanFieldPlan, cap_norm, combine_priority, goal_acc, repulsion_from_neighbours)
+from mfg_autopilot.guidance.params import DefaultPreset
+from mfg_autopilot.guidance.planner import MeanFieldPlan, combine_priority, goal_acc, repulsion_from_neighbours
+from mfg_autopilot.interface import HeardSummary, Neighbours, Observation, StepInfo
+from mfg_autopilot.paper import kernels
+from mfg_autopilot.paper.features import make_sigma_F, make_sigma_H
+from mfg_autopilot.paper.learners import hjb_update
+from mfg_autopilot.paper.meanfield import fit_initial_fpk_weights
+from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift, optimal_action
+from mfg_autopilot.paper.params import Preset
+from mfg_autopilot.safety import backstop
+from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
 
-__all__ = ["PRESET", "DefaultMFGController", "DefaultHJBController"]
-
-PRESET = DefaultPreset()
+__all__ = ["DefaultMFGController", "DefaultHJBController"]
 
 
 def _sensed(obs: Observation) -> Neighbours:
@@ -59,7 +58,7 @@ class _DefaultBase:
         self.backstop_steps = np.zeros(self.n, dtype=np.int64)
         self._own_err: np.ndarray | None = None     # MFG: each row's deviation from its plan particle, s - s_plan (n, 4)
         if bp.enabled:
-            backstop_kernels.warm_up()      # load the compiled backstop now, not in the first control step (both modes)
+            backstop.warm_up()              # load the compiled backstop now, not in the first control step (both modes)
 
     @property
     def n(self) -> int:
@@ -427,11 +426,11 @@ class DefaultHJBController(_DefaultBase):
 
     @property
     def needs_heard_summary(self) -> bool:
-        """The first step derives slots and radii from everything heard (controller.HeardSummary)."""
+        """The first step derives slots and radii from everything heard (interface.HeardSummary)."""
         return not self._slots_known
 
     def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray, float]:
-        """The reach (base_m, extra_m (N,), horizon_s) of heard states (controller.Controller): a heard j can
+        """The reach (base_m, extra_m (N,), horizon_s) of heard states (interface.Controller): a heard j can
         change row i's action only if its predicted closest approach over the horizon, min over
         0 <= tau <= horizon of |d + tau u| (d = r_j - r_i, u = v_j - v_i), is below R (planner._pair_force:
         the push is exactly zero for rho >= R, and its rho is |d + tau u| at one tau in [0, horizon]); that
@@ -482,5 +481,3 @@ class DefaultHJBController(_DefaultBase):
         return {"w_H": np.zeros((self.n, 54))}
 
 
-controller.register("default", "mfg", DefaultMFGController)
-controller.register("default", "hjb", DefaultHJBController)

@@ -21,7 +21,7 @@ followed by the action a* = sat(-(1/(2 c3)) B^T grad psi) (erratum 1: minus sign
 
 MFG (Algorithm 4) iterates K times: HJB update against phi_G(s, m_hat) (eq. 11), then
 the FPK model's update on the residual of eq. 10. The mean field is described in
-``mfg_autopilot.meanfield`` and ``docs/mean_field.md``.
+``mfg_autopilot.paper.meanfield`` and ``docs/mean_field.md``.
 """
 
 from __future__ import annotations
@@ -30,24 +30,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
-from .features import MonomialFeatures, make_sigma_H
-from .meanfield import MeanField
-from .model import lqr_value_weights, optimal_action, saturate
-from .params import Preset
+from mfg_autopilot.interface import StepInfo
+from mfg_autopilot.paper import kernels
+from mfg_autopilot.paper.features import MonomialFeatures, make_sigma_H
+from mfg_autopilot.paper.meanfield import MeanField
+from mfg_autopilot.paper.model import lqr_value_weights, optimal_action, saturate
+from mfg_autopilot.paper.params import Preset
 
 __all__ = ["StepInfo", "HJBLearner", "MFGLearner", "hjb_update", "policy_action"]
-
-
-@dataclass(frozen=True)
-class StepInfo:
-    """What one control step of a bank produced; every array has one row per vehicle."""
-
-    acc_m_s2: np.ndarray          # (n, 2) the action a* (saturated)
-    grad_evals: np.ndarray        # (n,) gradient evaluations this step (computation energy)
-    reg_active: np.ndarray        # (n,) bool, R_i(t) > 0 at some inner iteration (Fig. 4)
-    residual: np.ndarray          # (n,) last HJB residual H_hat
-    mf_evals: np.ndarray          # (n,) mean-field evaluations this step (MFG only)
 
 
 def policy_action(sigma_H: MonomialFeatures, w_H: np.ndarray, s_rel: np.ndarray, preset: Preset) -> np.ndarray:

@@ -23,18 +23,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .default_params import GuidanceParams, RepulsionParams
-from .params import CostParams
+from mfg_autopilot.guidance.params import GuidanceParams, RepulsionParams
+from mfg_autopilot.paper.model import cap_norm
+from mfg_autopilot.paper.params import CostParams
 
-__all__ = ["slots_from_sites", "min_spacing_m", "goal_acc", "repulsion_acc", "combine_priority", "cap_norm", "formation_goal_acc",
+__all__ = ["slots_from_sites", "min_spacing_m", "goal_acc", "repulsion_acc", "combine_priority", "formation_goal_acc",
            "MeanFieldPlan"]
-
-
-def cap_norm(a: np.ndarray, limit) -> np.ndarray:
-    """Scale rows of a (n, 2) so that |a| <= limit (limit scalar or (n,))."""
-    nrm = np.linalg.norm(a, axis=1)
-    lim = np.broadcast_to(np.asarray(limit, dtype=float), nrm.shape)
-    return a * np.minimum(1.0, lim / np.maximum(nrm, 1e-300))[:, None]
 
 
 def slots_from_sites(pos0_m: np.ndarray, sites_m: np.ndarray) -> np.ndarray:

@@ -408,22 +408,3 @@ def half_plane_filter(a_nom, delta_a, a_max, a_max2):
         a[i, 0], a[i, 1] = _cap_row(ax, ay, a_max)
     return a, active
 
-
-def warm_up() -> None:
-    """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it.
-    Through the public wrappers of mfg_autopilot.backstop, with cases that reach every kernel (an escape
-    that acts, a half-plane push), so the argument types are exactly those of a control step (a kernel
-    first called with other types - a read-only or differently laid out array - would compile again,
-    seconds inside a control step: tests/test_kernels.py checks that a flight step compiles nothing new)."""
-    from .backstop import apply_backstop, backstop_acc, escape_acc      # (backstop imports this module)
-    from .default_params import BackstopParams
-
-    bp = BackstopParams()
-    own = np.array([[0.0, 0.0, 4.0, 0.0]])
-    a_nom = np.array([[0.2, -0.1]])
-    # a hovering (unplanned) vehicle 2 m ahead and a planned one alongside: the escape acts
-    sensed = np.array([[2.0, 0.0, 0.0, 0.0], [0.0, 1.0, 4.0, 0.0]])
-    escape_acc(own, a_nom, sensed, np.array([0, 0]), np.array([True, False]), np.array([0.6, 0.0]),
-               np.array([0.8, 0.5]), bp, 0.5)
-    da = backstop_acc(own, np.array([[0.3, 0.05, 3.0, 0.0]]), np.array([0]), bp)
-    apply_backstop(a_nom, da, 2.0)

@@ -33,11 +33,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernels
-from .costs import cs_kernel
-from .features import MonomialFeatures, make_sigma_F
-from .model import nominal_drift, optimal_action, saturate
-from .params import Preset
+from mfg_autopilot.paper import kernels
+from mfg_autopilot.paper.costs import cs_kernel
+from mfg_autopilot.paper.features import MonomialFeatures, make_sigma_F
+from mfg_autopilot.paper.model import nominal_drift, optimal_action, saturate
+from mfg_autopilot.paper.params import Preset
 
 __all__ = ["MeanField", "fit_initial_fpk_weights", "kde_at", "KDE_EXACT_MAX_POINTS", "KDE_TRUNCATION_TOL"]
 

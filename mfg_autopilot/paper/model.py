@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve_continuous_are
 
-from .features import MonomialFeatures
-from .params import CostParams
+from mfg_autopilot.paper.features import MonomialFeatures
+from mfg_autopilot.paper.params import CostParams
 
 __all__ = ["A_matrix", "B_matrix", "G_matrix", "nominal_drift", "optimal_action", "saturate", "saturate_jacobian",
            "lqr_riccati_axis", "lqr_value_weights"]
@@ -55,6 +55,13 @@ def saturate(acc: np.ndarray, limit: float) -> np.ndarray:
     """Scale rows of acc (n, 2) so that |a| <= limit."""
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
     return acc * np.minimum(1.0, limit / np.maximum(norm, 1e-300))
+
+
+def cap_norm(a: np.ndarray, limit) -> np.ndarray:
+    """Scale rows of a (n, 2) so that |a| <= limit (limit scalar or (n,))."""
+    nrm = np.linalg.norm(a, axis=1)
+    lim = np.broadcast_to(np.asarray(limit, dtype=float), nrm.shape)
+    return a * np.minimum(1.0, lim / np.maximum(nrm, 1e-300))[:, None]
 
 
 def saturate_jacobian(u: np.ndarray, limit: float) -> np.ndarray:

@@ -55,8 +55,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .features import MonomialFeatures
-from .params import CostParams
+from mfg_autopilot.paper.features import MonomialFeatures
+from mfg_autopilot.paper.params import CostParams
 
 __all__ = ["AxisGrid", "AxisProblem", "axis_problems", "StationarySolution", "solve_stationary_hjb",
            "cfl_dt_s", "hjb_backward_step", "fpk_forward_step", "deposit_cic", "interp_bilinear",

@@ -1,6 +1,6 @@
 """The solved controllers: HJB control (Algorithm 1) and MFG control (Algorithm 2) acting from
-the finite-difference solutions of ``mfg_autopilot.pde`` behind the Controller interface
-(``mfg_autopilot.controller``). Registered as modes "hjb-pde" and "mfg-pde" of the `paper`
+the finite-difference solutions of ``mfg_autopilot.pde.solver`` behind the Controller interface
+(``mfg_autopilot.paper.controllers``). Registered as modes "hjb-pde" and "mfg-pde" of the `paper`
 preset. No I/O. Design and measured figures: docs/pde.md.
 
 Action (eqs. 7, 8, 10 with SPEC erratum 1, saturated as docs/errata.md E3):
@@ -31,14 +31,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import controller as _controller
-from .costs import cs_kernel
-from .features import make_sigma_H
-from .learners import StepInfo
-from .model import nominal_drift, optimal_action, saturate
-from .params import Preset
-from .pde import (AxisGrid, axis_problems, interp_bilinear, project_on_sigma_H, solve_mfg,
-                  solve_stationary_hjb)
+from mfg_autopilot.interface import Observation, StepInfo
+from mfg_autopilot.paper.costs import cs_kernel
+from mfg_autopilot.paper.features import make_sigma_H
+from mfg_autopilot.paper.model import nominal_drift, optimal_action, saturate
+from mfg_autopilot.paper.params import Preset
+from mfg_autopilot.pde.solver import AxisGrid, axis_problems, interp_bilinear, project_on_sigma_H, solve_mfg, solve_stationary_hjb
 
 __all__ = ["PDEParams", "HJBPDEController", "MFGPDEController", "grids_for"]
 
@@ -160,7 +158,7 @@ class HJBPDEController(_PDEBase):
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """HJB_d has no swarm-wide exchange."""
 
-    def step(self, obs: _controller.Observation) -> StepInfo:
+    def step(self, obs: Observation) -> StepInfo:
         own = np.asarray(obs.own_states, dtype=float)
         s_rel = own - self._dest4
         if self.stationary is None:
@@ -220,7 +218,7 @@ class MFGPDEController(_PDEBase):
             return (self.mfg.psi[0][step], self.mfg.psi[1][step])
         return super()._psi_at(step)
 
-    def step(self, obs: _controller.Observation) -> StepInfo:
+    def step(self, obs: Observation) -> StepInfo:
         if self.mfg is None:
             raise RuntimeError("MFGPDEController.step before exchange_t0(): the t = 0 exchange has not happened")
         s_rel = np.asarray(obs.own_states, dtype=float) - self._dest4
@@ -228,5 +226,3 @@ class MFGPDEController(_PDEBase):
         return self._info(s_rel, self._grad_v(s_rel, self._dpsi_at(int(obs.step))))
 
 
-_controller.register("paper", "hjb-pde", HJBPDEController)
-_controller.register("paper", "mfg-pde", MFGPDEController)

@@ -15,10 +15,10 @@ import signal
 import sys
 import threading
 
-from .controller import MODES
-from .exchange import ZenohSettings
-from .params import radio_range_m
-from .runtime import AutopilotConfig, run_autopilot
+from mfg_autopilot.paper.params import radio_range_m
+from mfg_autopilot.presets import MODES
+from mfg_autopilot.runtime.autopilot import AutopilotConfig, run_autopilot
+from mfg_autopilot.runtime.exchange import ZenohSettings
 
 __all__ = ["main", "build_parser", "config_from_args"]
 

@@ -1,10 +1,10 @@
-"""A Zenoh router (or any session mode) as a process: ``python -m mfg_autopilot.zenoh_router``.
+"""A Zenoh router (or any session mode) as a process: ``python -m mfg_autopilot.runtime.router``.
 
 Stands in for ``zenohd`` where it is not installed: vehicles in client mode connect to it,
 and routers on several hosts join separate networks (docs/zenoh.md). Prints ``ready`` on
 stdout once the session is open; runs until SIGTERM / SIGINT, then closes the session.
 
-    python -m mfg_autopilot.zenoh_router --zenoh-listen tcp/0.0.0.0:7447
+    python -m mfg_autopilot.runtime.router --zenoh-listen tcp/0.0.0.0:7447
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ import signal
 import sys
 import threading
 
-from mfg_autopilot.exchange import ExchangeError, ZenohSettings, run_router
+from mfg_autopilot.runtime.exchange import ExchangeError, ZenohSettings, run_router
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m mfg_autopilot.zenoh_router",
+    parser = argparse.ArgumentParser(prog="python -m mfg_autopilot.runtime.router",
                                      description=__doc__.splitlines()[0])
     ZenohSettings.add_cli_args(parser)
     parser.set_defaults(zenoh_mode="router")

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["CostParams", "RadioParams", "LearnerParams", "Preset", "PAPER", "PAPER_LQR", "preset_by_name", "radio_range_m"]
+__all__ = ["CostParams", "RadioParams", "LearnerParams", "Preset", "PAPER", "PAPER_LQR", "radio_range_m"]
 
 
 @dataclass(frozen=True)
@@ -103,18 +103,3 @@ PAPER_LQR = Preset(name="paper-lqr", learner=LearnerParams(w_H_init="lqr"))
 instead of 0 (SPEC section 3: with it every UAV arrives, but they collide at the
 destination). Registered so that the effect of the warm start can be measured alone."""
 
-
-def preset_by_name(name: str) -> Preset:
-    """The preset called ``name``: ``paper`` and ``paper-lqr`` here, others from
-    ``mfg_autopilot.preset_<name>.PRESET``."""
-    if name == "paper":
-        return PAPER
-    if name == "paper-lqr":
-        return PAPER_LQR
-    import importlib
-
-    try:
-        mod = importlib.import_module(f"{__package__}.preset_{name}")
-    except ModuleNotFoundError:
-        raise ValueError(f"unknown preset {name!r}") from None
-    return mod.PRESET

@@ -2,7 +2,7 @@
 
 Data flows one way: telemetry (LOCAL_POSITION_NED) -> Observation -> controller bank of one
 -> acceleration setpoint (SET_POSITION_TARGET_LOCAL_NED). Neighbour states come in through
-the Zenoh exchange (``mfg_autopilot.exchange``); the MAVLink link is ``mavlink_bridge``.
+the Zenoh exchange (``mfg_autopilot.runtime.exchange``); the MAVLink link is ``mavlink_bridge``.
 
 Sequence (issue 4): wait for the vehicle's heartbeat and first position -> join the swarm
 (MFG: the t = 0 exchange; HJB_d: wait until all N are present) -> stream setpoints, arm,
@@ -35,12 +35,19 @@ from pathlib import Path
 
 import numpy as np
 
-from mavlink_bridge import BridgeError, HeartbeatTimeout, HomePosition, LocalPositionNed, TelemetryTimeout, VehicleLink, load_signing_key
+from mavlink_bridge import (
+    BridgeError,
+    HeartbeatTimeout,
+    HomePosition,
+    LocalPositionNed,
+    TelemetryTimeout,
+    VehicleLink,
+    load_signing_key,
+)
 from mavlink_bridge.adsb import adsb_states
-
-from .controller import Neighbours, Observation, make_controller
-from .exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange, ZenohSettings
-from .params import preset_by_name
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.runtime.exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange, ZenohSettings
 
 __all__ = ["AutopilotConfig", "ControllerLog", "run_autopilot", "LOCKSTEP_PRESTREAM_TIME_BOOT_MS", "AutopilotError"]
 

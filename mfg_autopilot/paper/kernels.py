@@ -618,7 +618,7 @@ def phi_G_plan(own, own_index, x, centroid, E, scale, w_F, radius_m, eps_m2, bet
 
 
 def warm_up() -> None:
-    """Load (or, on a cold cache, compile) every single-threaded kernel (and backstop_kernels'), so that the first control
+    """Load (or, on a cold cache, compile) every single-threaded kernel of this module, so that the first control
     step does not pay for it. Banks of PARALLEL_MIN_ROWS or more compile their threaded variants
     on first use."""
     E = np.array([[1, 0, 2, 0], [0, 1, 0, 2]], dtype=np.int64)
@@ -632,5 +632,3 @@ def warm_up() -> None:
     hjb_update_rows(E, sc, s, w, np.zeros(1), 0.1, np.zeros(2), 1.0, 1.0, 1.0, 1.0, 0.01, 0.5, 2.0, G)
     fpk_update_rows(E, sc, s, s, np.zeros((1, 2)), np.zeros((1, 4)), np.zeros(1), w, 0.1, np.zeros(2), 1.0, 0.01, G)
     phi_G_plan(s, np.zeros(1, dtype=np.int64), np.vstack([s, s + 0.1]), np.zeros(4), E, sc, w, 1.0, 1e-3, 1.0, True)
-    from . import backstop_kernels          # the backstop's escape (backstop.escape_acc), same start-up rule
-    backstop_kernels.warm_up()

@@ -1,0 +1,52 @@
+"""Parameters of the safety layer (the proximity backstop), declared once with units.
+
+Reasons and measured effects: ``docs/default_controller.md`` (section "Backstop").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["BackstopParams"]
+
+
+@dataclass(frozen=True)
+class BackstopParams:
+    """Communication-free proximity backstop (onboard sensor of short range)."""
+
+    enabled: bool = True
+    sensor_range_m: float = 10.0
+    horizon_s: float = 2.0
+    u_noise_m_s: float = 0.5        # relative speeds below this (wind jitter at hover) are not extrapolated
+    trigger_m: float = 0.15         # act only if the predicted closest approach is below this (< dense plan clearance)
+    target_m: float = 0.15          # ... and then push for this clearance
+    share: float = 0.5              # own share of the correction (the other vehicle is assumed to take the rest)
+    planned_max_own_dev_m: float = 0.1     # MFG: the response above only while the own UAV is this close to its plan particle (tracking error ~4 cm rms)
+    # MFG only: a sensed vehicle farther than this from every plan particle is not flying the
+    # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
+    plan_mismatch_m: float = 0.5
+    plan_mismatch_s: float = 0.5    # velocity weight of that distance (a hovering vehicle in a moving plan stands out)
+    unplanned_trigger_m: float = 0.6   # used: min(this, 0.5 * smallest slot spacing)
+    unplanned_target_m: float = 0.8    # used: min(this, 0.6 * smallest slot spacing)
+    unplanned_share: float = 1.0
+    common_mode: bool = True           # MFG: a vehicle off the plan by the own deviation (a shared gust) is not unplanned
+    common_mode_min_own_dev_m: float = 0.2   # ... checked only for rows this far off their own particle (same metric)
+    # MFG: the escape manoeuvre against unplanned vehicles (backstop.escape_acc) instead of the
+    # single half-plane push; it keeps clear of every sensed vehicle while avoiding the threat
+    escape: bool = True
+    escape_sample_s: float = 0.1       # prediction sampling over horizon_s
+    escape_directions: int = 16        # candidate directions (at a_max / 2 and a_max), plus a_nom and 0
+    escape_planned_clear_m: float = 0.5    # clearance kept from planned vehicles: min(this, escape_planned_fraction * spacing)
+    escape_planned_fraction: float = 0.4
+    escape_threat_weight: float = 1.0      # weight of a conflict with a threat in the escape cost
+    escape_planned_weight: float = 1.0     # ... and with a planned vehicle
+    escape_effort: float = 1.0         # weight of |a - a_nom|^2 / a_max^2 (minimal intervention)
+    escape_lateral_cost: float = 1.0   # lateral (to the own velocity) deviations cost this x more than along-track
+    escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
+    escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
+    escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
+    escape_max_unplanned_fraction: float = 0.5   # a row sensing a larger share of off-plan vehicles gets the half-plane push
+    escape_gap: bool = False          # also escape below the planned trigger from vehicles neither response covers (measured on one case only, slow: off)
+    escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
+    tau_min_s: float = 0.5
+    a_max_m_s2: float = 2.0
