@@ -388,9 +388,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     if n < 1 or n > 253:
         raise LaunchError(f"N = {n} is impossible for a process swarm: MAVLink system ids allow 1..253 vehicles")
     if cfg.controller_rt_priority is not None:
-        from mfg_autopilot.runtime.autopilot import (
-            check_rt_priority,  # the controller's own rule (runtime pulls in Zenoh: only when asked)
-        )
+        # the controller's own rule (its config module pulls in Zenoh's settings: only when asked)
+        from mfg_autopilot.runtime.config import check_rt_priority
         try:
             check_rt_priority(cfg.controller_rt_priority)
         except ValueError as exc:

@@ -305,14 +305,3 @@ def test_closes_on_exception(swarm_name):
     assert ex._session is None
     with pytest.raises(Exception, match="not open"):
         ex.publish_state(1, 0.0, [0, 0, 0, 0])
-
-
-def test_exchange_is_the_only_zenoh_import_in_the_flight_stack():
-    root = Path(__file__).resolve().parents[1]
-    offenders = []
-    for pkg in ("mfg_autopilot", "mavlink_bridge", "mock_vehicle", "mfg_swarm"):
-        for f in (root / pkg).rglob("*.py"):
-            src = f.read_text()
-            if ("import zenoh" in src or "from zenoh" in src) and f.name != "exchange.py":
-                offenders.append(str(f.relative_to(root)))
-    assert offenders == []

@@ -26,8 +26,6 @@ the FPK model's update on the residual of eq. 10. The mean field is described in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from mfg_autopilot.interface import StepInfo

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from mfg_autopilot.interface import Observation, StepInfo
-from mfg_autopilot.paper.costs import cs_kernel
 from mfg_autopilot.paper.features import make_sigma_H
 from mfg_autopilot.paper.model import nominal_drift, optimal_action, saturate
 from mfg_autopilot.paper.params import Preset

@@ -23,14 +23,12 @@ The log (JSON Lines, docs/controller_log.md) is flushed after every record.
 from __future__ import annotations
 
 import gc
-import json
 import logging
 import math
 import os
 import pickle
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,188 +45,20 @@ from mavlink_bridge import (
 from mavlink_bridge.adsb import adsb_states
 from mfg_autopilot.interface import Neighbours, Observation
 from mfg_autopilot.presets import make_controller, preset_by_name
-from mfg_autopilot.runtime.exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange, ZenohSettings
+from mfg_autopilot.runtime.config import AutopilotConfig, AutopilotError
+from mfg_autopilot.runtime.controller_log import ControllerLog
+from mfg_autopilot.runtime.exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange
+from mfg_autopilot.runtime.timing import GcClock, PhaseClock, set_realtime_priority
+from mfg_autopilot.runtime.zenoh_config import ZenohSettings
 
-__all__ = ["AutopilotConfig", "ControllerLog", "run_autopilot", "LOCKSTEP_PRESTREAM_TIME_BOOT_MS", "AutopilotError"]
+__all__ = ["Autopilot", "AutopilotConfig", "AutopilotError", "ControllerLog", "run_autopilot", "set_realtime_priority",
+           "LOCKSTEP_PRESTREAM_TIME_BOOT_MS"]
 
 log = logging.getLogger("mfg_autopilot")
 
 LOCKSTEP_PRESTREAM_TIME_BOOT_MS = 0xFFFFFFFF
 """Stamp of the setpoints streamed during the OFFBOARD handshake in lockstep: never a
 simulated time, so they satisfy PX4's stream check without advancing the world."""
-
-
-class AutopilotError(RuntimeError):
-    """A failure of the controller process, with what failed and what to do."""
-
-
-@dataclass(frozen=True)
-class AutopilotConfig:
-    instance: int
-    connect: str
-    mode: str
-    preset: str = "paper"
-    n: int = 1
-    swarm: str = "swarm"
-    range_m: float | None = None
-    sites_m: tuple[tuple[float, float], ...] | None = None   # every vehicle's destination site (N)
-    lockstep: bool = False
-    steps: int = 200
-    hold_on_arrival: bool | None = None        # default: on in real time, off in lockstep
-    arrival_tol_m: float = 1.0
-    arrival_hold_s: float = 5.0
-    log_path: str | None = None
-    tlog_path: str | None = None
-    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
-    vehicle_timeout_s: float = 30.0
-    exchange_timeout_s: float = 60.0
-    gossip_timeout_s: float = 10.0
-    step_timeout_s: float = 30.0
-    step_retry_s: float = 0.5
-    command_timeout_s: float = 10.0
-    telemetry_stale_s: float = 0.5
-    setpoint_rate_hz: float = 20.0
-    vehicle_lost_s: float = 3.0               # heartbeat silence after which the vehicle is lost
-    state_dir: str | None = None              # checkpoints for a restart without a new exchange
-    mavlink_key_file: str | None = None       # MAVLink 2 signing key (docs/security.md)
-    traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
-    traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
-    checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
-    rt_priority: int | None = None            # SCHED_FIFO priority of the controller's threads (None: normal scheduling)
-    log_fpk_weights_every: int = 10           # w_F in the step record every this many steps and at the last (0: never)
-
-    def __post_init__(self) -> None:
-        if self.n < 1:
-            raise ValueError(f"--n must be >= 1, got {self.n}")
-        if not (0 <= self.instance < self.n):
-            raise ValueError(f"--instance {self.instance} is not a vehicle of a swarm of {self.n} (0..{self.n - 1})")
-        if self.mode.startswith("hjb") and (self.range_m is None or self.range_m < 0):
-            raise ValueError("HJB_d needs a radio range: give --range-m D or --power-mw P")
-        if self.sites_m is not None and len(self.sites_m) != self.n:
-            raise ValueError(f"the mission gives {len(self.sites_m)} destination sites for {self.n} vehicles")
-        if self.steps < 1:
-            raise ValueError(f"--steps must be >= 1, got {self.steps}")
-        if self.rt_priority is not None:
-            check_rt_priority(self.rt_priority)
-        if self.log_fpk_weights_every < 0:
-            raise ValueError(f"--log-fpk-weights-every must be >= 0, got {self.log_fpk_weights_every}")
-
-    @property
-    def system_id(self) -> int:
-        return self.instance + 1
-
-    def sites_array(self) -> np.ndarray:
-        return np.zeros((self.n, 2)) if self.sites_m is None else np.asarray(self.sites_m, dtype=float)
-
-
-class ControllerLog:
-    """JSON Lines: one object per line, flushed after each; ``type`` is start | event | step | end."""
-
-    def __init__(self, path: str | None) -> None:
-        self._fh = None
-        if path:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            self._fh = open(path, "a", buffering=1, encoding="utf-8")
-        self._lock = threading.Lock()
-
-    def write(self, record: dict) -> None:
-        if self._fh is None:
-            return
-        line = json.dumps(record, separators=(",", ":"), allow_nan=False, default=_jsonable)
-        with self._lock:
-            self._fh.write(line + "\n")
-            self._fh.flush()
-
-    def event(self, what: str, **kw) -> None:
-        log.info("%s %s", what, " ".join(f"{k}={v}" for k, v in kw.items()))
-        self.write({"type": "event", "what": what, "wall_s": time.time(), **kw})
-
-    def close(self) -> None:
-        if self._fh is not None:
-            with self._lock:
-                self._fh.close()
-                self._fh = None
-
-
-def _jsonable(x):
-    if isinstance(x, np.ndarray):
-        if x.ndim > 1:
-            return x.tolist()
-        v = x.astype(float).ravel()
-        return v.tolist() if np.isfinite(v).all() else [None if not math.isfinite(f) else f for f in v.tolist()]
-    if isinstance(x, (np.floating, np.integer, np.bool_)):
-        return x.item()
-    raise TypeError(f"not JSON serialisable: {type(x)}")
-
-
-class GcClock:
-    """Wall time the cyclic garbage collector paused this process (``gc.callbacks``; any
-    thread's collections): ``total_s`` and ``collections`` since install."""
-
-    def __init__(self) -> None:
-        self.total_s = 0.0
-        self.collections = 0
-        self._t: float | None = None
-
-    def __call__(self, phase: str, info: dict) -> None:
-        if phase == "start":
-            self._t = time.perf_counter()
-        elif self._t is not None:
-            self.total_s += time.perf_counter() - self._t
-            self.collections += 1
-            self._t = None
-
-    def install(self) -> "GcClock":
-        gc.callbacks.append(self)
-        return self
-
-    def remove(self) -> None:
-        if self in gc.callbacks:
-            gc.callbacks.remove(self)
-
-
-class _PhaseClock:
-    """Per-step phase timings for the step record's ``timing`` (docs/controller_log.md): wall
-    (perf_counter) and this thread's CPU (thread_time) at each mark, the MAVLink receive
-    thread's CPU and the GC pause time since the previous step record."""
-
-    def __init__(self, link: VehicleLink, gc_clock: GcClock | None) -> None:
-        self.link, self.gc_clock = link, gc_clock
-        self._rx_cpu_s = getattr(link, "rx_cpu_s", 0.0)
-        self._gc_s = gc_clock.total_s if gc_clock is not None else 0.0
-        self._gc_n = gc_clock.collections if gc_clock is not None else 0
-        self.wall: list[float] = []
-        self.cpu: list[float] = []
-
-    def start(self) -> None:
-        self.wall = [time.perf_counter()]
-        self.cpu = [time.thread_time()]
-
-    def mark(self) -> None:
-        self.wall.append(time.perf_counter())
-        self.cpu.append(time.thread_time())
-
-    def phases(self, names: tuple[str, ...], first: int = 0) -> dict:
-        """{name_ms, name_cpu_ms} of the phases between consecutive marks from mark ``first`` on."""
-        out = {}
-        for i, name in enumerate(names, start=first):
-            out[f"{name}_ms"] = round((self.wall[i + 1] - self.wall[i]) * 1e3, 4)
-            out[f"{name}_cpu_ms"] = round((self.cpu[i + 1] - self.cpu[i]) * 1e3, 4)
-        return out
-
-    def record(self, names: tuple[str, ...]) -> dict:
-        """``phases(names)`` plus rx_cpu_ms, gc_ms, gc_collections since the previous record."""
-        out = self.phases(names)
-        out["process_cpu_s"] = round(time.process_time(), 6)
-        rx = getattr(self.link, "rx_cpu_s", 0.0)
-        out["rx_cpu_ms"] = round((rx - self._rx_cpu_s) * 1e3, 4)
-        self._rx_cpu_s = rx
-        if self.gc_clock is not None:
-            g, n = self.gc_clock.total_s, self.gc_clock.collections
-            out["gc_ms"] = round((g - self._gc_s) * 1e3, 4)
-            out["gc_collections"] = n - self._gc_n
-            self._gc_s, self._gc_n = g, n
-        return out
 
 
 def _state_of(p: LocalPositionNed) -> np.ndarray:
@@ -376,7 +206,7 @@ class Autopilot:
     def run_lockstep(self, p0: LocalPositionNed) -> str:
         cfg = self.cfg
         p = p0
-        clock = _PhaseClock(self.link, self.gc_clock)
+        clock = PhaseClock(self.link, self.gc_clock)
         carried: dict = {}
         while True:
             if self.stop.is_set():
@@ -437,7 +267,7 @@ class Autopilot:
         arrived_since = None
         stale = False
         last_k = -1
-        clock = _PhaseClock(self.link, self.gc_clock)
+        clock = PhaseClock(self.link, self.gc_clock)
         while True:
             k_due = int(math.floor((time.time() - self.mission_start_unix_s) / self.dt_s + 1e-9))
             k = max(k_due, last_k + 1)          # on time: the next step; late (or resumed): the one due now
@@ -615,46 +445,6 @@ class Autopilot:
         except BridgeError as exc:
             self.clog.event("offboard_resume_failed", error=str(exc))
         return None
-
-
-def check_rt_priority(priority: int) -> None:
-    """The SCHED_FIFO priorities Linux accepts (1-99); ValueError otherwise."""
-    if not 1 <= int(priority) <= 99:
-        raise ValueError(f"--rt-priority must be 1..99, got {priority}")
-
-
-def set_realtime_priority(priority: int, clog=None) -> bool:
-    """Put every thread of this process (the control loop, the MAVLink receive and setpoint
-    threads, Zenoh's) under SCHED_FIFO at `priority` (1-99), as a flight computer runs its
-    controller (PX4 runs its modules at SCHED_FIFO priorities): the control step is then not
-    preempted by normal-priority processes (the mocks, loggers) between telemetry and setpoint.
-    Needs CAP_SYS_NICE or an RLIMIT_RTPRIO >= priority; refused -> a log line and normal
-    scheduling (returns False). Every thread sleeps on a socket or a timer between steps, so
-    the kernel's real-time throttling is never reached."""
-    check_rt_priority(priority)
-    if not hasattr(os, "sched_setscheduler"):
-        log.warning("--rt-priority %d: this platform has no sched_setscheduler; normal scheduling", priority)
-        return False
-    param = os.sched_param(int(priority))
-    tids = [int(t) for t in os.listdir("/proc/self/task")] if os.path.isdir("/proc/self/task") else [0]
-    done, refused = 0, None
-    for tid in tids:
-        try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, param)
-            done += 1
-        except ProcessLookupError:                 # a thread that ended meanwhile
-            continue
-        except PermissionError as exc:
-            refused = exc
-            break
-    if refused is not None:
-        log.warning("--rt-priority %d refused (%s: needs CAP_SYS_NICE or an rtprio limit); normal scheduling", priority, refused)
-        if clog is not None:
-            clog.event("rt_priority", priority=int(priority), applied=False, error=str(refused))
-        return False
-    if clog is not None:
-        clog.event("rt_priority", priority=int(priority), applied=True, threads=done)
-    return True
 
 
 def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> int:

@@ -1,31 +1,12 @@
 """Zenoh swarm exchange: the t = 0 state exchange (MFG), per-step neighbour gossip (HJB_d),
 membership by liveliness, and the communication count (SPEC section 6).
 
-This module is the project's only ``import zenoh``. Nothing happens at import time; a session
-is opened by :class:`SwarmExchange` (a context manager) from a :class:`ZenohSettings` value
-built once at the command line (:meth:`ZenohSettings.add_cli_args` / :meth:`from_args`).
+Nothing happens at import time; a session is opened by :class:`SwarmExchange` (a context
+manager) from a :class:`~.zenoh_config.ZenohSettings` value built once at the command line. The
+wire contract (key expressions, the payload, the errors) is :mod:`.wire`; this module re-exports
+it, so ``mfg_autopilot.runtime.exchange`` is the one name a caller needs.
 
-Key expressions (the contract; see docs/zenoh.md):
-
-- ``mfg/<swarm>/state/<vehicle_id>``  state payloads (:class:`StateMsg`, layout below), one put
-  per control step.
-- ``mfg/<swarm>/alive/<vehicle_id>``  liveliness token held for the session's lifetime.
-- ``mfg/<swarm>/init/<vehicle_id>``   queryable answering the vehicle's step-0 state once
-  :meth:`SwarmExchange.initial_exchange` has been called (so late joiners get earlier states).
-
-Payload v1 (56 bytes, little-endian, ``struct`` format ``<2sBBIqd4d``):
-
-====== ==== ======== =============================================================
-offset size type     field
-====== ==== ======== =============================================================
-0      2    bytes    magic ``b"MF"``
-2      1    u8       version = 1
-3      1    u8       flags = 0 (reserved)
-4      4    u32      vehicle_id (0-based instance index)
-8      8    i64      step (control step, >= 0; 0 = the t = 0 exchange)
-16     8    f64      time_s (simulated time of the state, s)
-24     32   4 x f64  state [x_m, y_m, vx_m_s, vy_m_s], paper frame = LOCAL_NED (N, E)
-====== ==== ======== =============================================================
+Key expressions and payload: :mod:`.wire` and docs/zenoh.md.
 
 Threading: zenoh invokes callbacks on its own threads. All shared state lives behind one
 ``threading.Condition``; zenoh is never called while that lock is held (a local put delivers
@@ -34,18 +15,34 @@ to local subscribers synchronously on the calling thread). Every wait has a dead
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import math
-import re
-import struct
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
 import zenoh
+
+from mfg_autopilot.runtime.wire import (
+    _U32_MAX,
+    MAX_STEP,
+    PAYLOAD_FORMAT,
+    PAYLOAD_MAGIC,
+    PAYLOAD_SIZE,
+    PAYLOAD_VERSION,
+    ExchangeError,
+    ExchangeStopped,
+    ExchangeTimeout,
+    PayloadError,
+    StateMsg,
+    _as_state,
+    _check_swarm,
+    _id_from_key,
+    alive_key,
+    init_key,
+    state_key,
+)
+from mfg_autopilot.runtime.zenoh_config import ZenohSettings, open_session, run_router
 
 __all__ = [
     "MAX_BUFFERED_STEPS",
@@ -70,21 +67,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-PAYLOAD_MAGIC = b"MF"
-PAYLOAD_VERSION = 1
-PAYLOAD_FORMAT = "<2sBBIqd4d"
-PAYLOAD_SIZE = struct.calcsize(PAYLOAD_FORMAT)  # 56
-_PAYLOAD = struct.Struct(PAYLOAD_FORMAT)
-_U32_MAX = 2**32 - 1
-# Highest valid step (2**53 - 1: exact as a float64 / JSON number). Larger steps are rejected
-# ("range"): an absurd step would otherwise pin a sender's latest state.
-MAX_STEP = 2**53 - 1
 # At most this many distinct future steps are buffered for lockstep gossip (memory bound
 # against a sender that publishes many future steps); lockstep needs two.
 MAX_BUFFERED_STEPS = 1024
-
-ZENOH_MODES = ("peer", "client", "router")
-_SWARM_RE = re.compile(r"^[A-Za-z0-9_\-.]+$")
 
 # How often initial_exchange re-queries the init queryables of vehicles still missing (s).
 INIT_QUERY_PERIOD_S = 0.25
@@ -95,208 +80,6 @@ period costs O(N^2) replies four times a second while the slowest vehicle starts
 N = 81 through a router that storm kept the exchange from ever completing). States
 published after a vehicle subscribed reach it at once by the subscription anyway."""
 STOP_POLL_S = 0.25
-
-
-# --------------------------------------------------------------------------------------
-# Errors
-# --------------------------------------------------------------------------------------
-class ExchangeError(RuntimeError):
-    """A failure of the Zenoh swarm exchange (session, membership or protocol)."""
-
-
-class ExchangeStopped(ExchangeError):
-    """A wait of the exchange was abandoned because its ``stop`` event was set (a signal)."""
-
-
-class ExchangeTimeout(ExchangeError, TimeoutError):
-    """A wait of the exchange ran past its deadline. ``missing`` names the vehicles waited for."""
-
-    def __init__(self, message: str, missing: Iterable[int] = ()):
-        super().__init__(message)
-        self.missing: tuple[int, ...] = tuple(sorted(missing))
-
-
-class PayloadError(ExchangeError, ValueError):
-    """A state payload does not parse. ``kind`` is one of: length, magic, version, flags,
-    non_finite, range; on the wire also key (key id != payload id, or not a canonical
-    decimal) and unknown_id (a vehicle id outside the swarm's expected ids)."""
-
-    def __init__(self, kind: str, message: str):
-        super().__init__(f"bad state payload ({kind}): {message}")
-        self.kind = kind
-
-
-# --------------------------------------------------------------------------------------
-# Settings: built once at the command line, passed down as a value
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class ZenohSettings:
-    """How to open the Zenoh session.
-
-    ``config_file`` (a zenoh json5 config) is applied first; the fields below then override it:
-    ``mode`` and ``multicast_scouting`` always, ``connect`` / ``listen`` when non-empty. With
-    no config file and no ``listen``, peers and clients listen on ``tcp/127.0.0.1:0``
-    (loopback only); routers keep zenoh's default (``tcp/[::]:7447``).
-    """
-
-    mode: str = "peer"
-    connect: tuple[str, ...] = ()
-    listen: tuple[str, ...] = ()
-    config_file: str | None = None
-    multicast_scouting: bool = False
-
-    def __post_init__(self) -> None:
-        if self.mode not in ZENOH_MODES:
-            raise ValueError(f"zenoh mode must be one of {ZENOH_MODES}, got {self.mode!r}")
-        for ep in (*self.connect, *self.listen):
-            if "/" not in ep:
-                raise ValueError(f"zenoh endpoint must look like tcp/HOST:PORT, got {ep!r}")
-
-    @staticmethod
-    def add_cli_args(parser: argparse.ArgumentParser) -> None:
-        g = parser.add_argument_group("zenoh")
-        g.add_argument("--zenoh-mode", choices=ZENOH_MODES, default="peer",
-                       help="session mode (default: peer)")
-        g.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-        g.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to listen on, e.g. tcp/127.0.0.1:7448 (repeatable; "
-                            "default for peers: tcp/127.0.0.1:0)")
-        g.add_argument("--zenoh-config", default=None, metavar="FILE",
-                       help="zenoh json5 config file, applied before the flags above")
-        g.add_argument("--zenoh-multicast-scouting", action="store_true",
-                       help="enable multicast scouting (off by default: it leaves loopback)")
-
-    @staticmethod
-    def from_args(ns: argparse.Namespace) -> "ZenohSettings":
-        return ZenohSettings(
-            mode=ns.zenoh_mode,
-            connect=tuple(ns.zenoh_connect or ()),
-            listen=tuple(ns.zenoh_listen or ()),
-            config_file=ns.zenoh_config,
-            multicast_scouting=bool(getattr(ns, "zenoh_multicast_scouting", False)),
-        )
-
-    def to_config(self) -> zenoh.Config:
-        conf = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
-        conf.insert_json5("mode", json.dumps(self.mode))
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
-        if self.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        if self.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        elif self.config_file is None and self.mode != "router":
-            conf.insert_json5("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]))
-        return conf
-
-
-def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """Open a zenoh session; the caller must close it (``with open_session(s) as z:``)."""
-    try:
-        return zenoh.open(settings.to_config())
-    except Exception as e:  # zenoh.ZError and config errors
-        raise ExchangeError(f"cannot open zenoh session ({settings.mode}, connect="
-                            f"{list(settings.connect)}, listen={list(settings.listen)}): {e}") from e
-
-
-def run_router(settings: ZenohSettings, stop: threading.Event,
-               on_ready: Callable[[], None] | None = None) -> None:
-    """Run a zenoh session (normally ``mode="router"``) until ``stop`` is set, then close it."""
-    session = open_session(settings)
-    try:
-        if on_ready is not None:
-            on_ready()
-        while not stop.wait(0.5):
-            pass
-    finally:
-        session.close()
-
-
-# --------------------------------------------------------------------------------------
-# Key expressions
-# --------------------------------------------------------------------------------------
-def _check_swarm(swarm: str) -> str:
-    if not _SWARM_RE.match(swarm):
-        raise ValueError(f"swarm name must match {_SWARM_RE.pattern} (one key chunk), got {swarm!r}")
-    return swarm
-
-
-def state_key(swarm: str, vehicle_id: int | str) -> str:
-    return f"mfg/{_check_swarm(swarm)}/state/{vehicle_id}"
-
-
-def alive_key(swarm: str, vehicle_id: int | str) -> str:
-    return f"mfg/{_check_swarm(swarm)}/alive/{vehicle_id}"
-
-
-def init_key(swarm: str, vehicle_id: int | str) -> str:
-    return f"mfg/{_check_swarm(swarm)}/init/{vehicle_id}"
-
-
-def _id_from_key(key: str) -> int | None:
-    """The vehicle id of a key's last chunk, if it is a canonical decimal ("7", not "07")."""
-    last = key.rsplit("/", 1)[-1]
-    if not (last.isascii() and last.isdigit()) or str(int(last)) != last:
-        return None
-    return int(last)
-
-
-# --------------------------------------------------------------------------------------
-# Payload
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class StateMsg:
-    """One vehicle's state at one control step (payload v1, see the module docstring).
-
-    ``state`` is ``[x_m, y_m, vx_m_s, vy_m_s]`` in the paper frame (= LOCAL_NED north, east).
-    """
-
-    vehicle_id: int
-    step: int
-    time_s: float
-    state: tuple[float, float, float, float]
-
-    def encode(self) -> bytes:
-        st = tuple(float(v) for v in self.state)
-        if len(st) != 4:
-            raise PayloadError("length", f"state must have 4 entries, got {len(st)}")
-        if not (0 <= int(self.vehicle_id) <= _U32_MAX):
-            raise PayloadError("range", f"vehicle_id {self.vehicle_id} not in u32")
-        if not (0 <= int(self.step) <= MAX_STEP):
-            raise PayloadError("range", f"step {self.step} not in [0, {MAX_STEP}]")
-        if not all(math.isfinite(v) for v in (float(self.time_s), *st)):
-            raise PayloadError("non_finite", f"non-finite time/state {self.time_s} {st}")
-        return _PAYLOAD.pack(PAYLOAD_MAGIC, PAYLOAD_VERSION, 0, int(self.vehicle_id),
-                             int(self.step), float(self.time_s), *st)
-
-    @staticmethod
-    def decode(b: bytes) -> "StateMsg":
-        """Parse a payload; raise :class:`PayloadError` on anything malformed."""
-        if len(b) != PAYLOAD_SIZE:
-            raise PayloadError("length", f"{len(b)} bytes, expected {PAYLOAD_SIZE}")
-        magic, version, flags, vid, step, time_s, x, y, vx, vy = _PAYLOAD.unpack(b)
-        if magic != PAYLOAD_MAGIC:
-            raise PayloadError("magic", f"magic {magic!r}, expected {PAYLOAD_MAGIC!r}")
-        if version != PAYLOAD_VERSION:
-            raise PayloadError("version", f"version {version}, expected {PAYLOAD_VERSION}")
-        if flags != 0:
-            raise PayloadError("flags", f"flags {flags:#x}, expected 0")
-        if not (0 <= step <= MAX_STEP):
-            raise PayloadError("range", f"step {step} not in [0, {MAX_STEP}]")
-        if not all(math.isfinite(v) for v in (time_s, x, y, vx, vy)):
-            raise PayloadError("non_finite", f"time/state not finite: {time_s} {(x, y, vx, vy)}")
-        return StateMsg(vid, step, time_s, (x, y, vx, vy))
-
-    @property
-    def pos_m(self) -> tuple[float, float]:
-        return (self.state[0], self.state[1])
-
-
-def _as_state(state: Sequence[float]) -> tuple[float, float, float, float]:
-    st = tuple(float(v) for v in state)
-    if len(st) != 4:
-        raise ValueError(f"state must be [x_m, y_m, vx_m_s, vy_m_s], got {len(st)} entries")
-    return st  # type: ignore[return-value]
 
 
 # --------------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ from mfg_autopilot.paper.model import cap_norm
 from mfg_autopilot.safety import kernels as backstop_kernels
 from mfg_autopilot.safety.params import BackstopParams
 
-__all__ = ["backstop_acc", "apply_backstop", "escape_acc"]
+__all__ = ["backstop_acc", "apply_backstop", "escape_acc", "warm_up"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams) -> np.ndarray:

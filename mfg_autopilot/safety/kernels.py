@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "warm_up"]
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates"]
 
 
 @njit(cache=True)

@@ -1,0 +1,80 @@
+"""The vehicle process's configuration: read once at the command line (``cli.py``), passed down as a value."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mfg_autopilot.runtime.zenoh_config import ZenohSettings
+
+__all__ = ["AutopilotError", "AutopilotConfig", "check_rt_priority"]
+
+
+def check_rt_priority(priority: int) -> None:
+    """The SCHED_FIFO priorities Linux accepts (1-99); ValueError otherwise."""
+    if not 1 <= int(priority) <= 99:
+        raise ValueError(f"--rt-priority must be 1..99, got {priority}")
+
+
+class AutopilotError(RuntimeError):
+    """A failure of the controller process, with what failed and what to do."""
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    instance: int
+    connect: str
+    mode: str
+    preset: str = "paper"
+    n: int = 1
+    swarm: str = "swarm"
+    range_m: float | None = None
+    sites_m: tuple[tuple[float, float], ...] | None = None   # every vehicle's destination site (N)
+    lockstep: bool = False
+    steps: int = 200
+    hold_on_arrival: bool | None = None        # default: on in real time, off in lockstep
+    arrival_tol_m: float = 1.0
+    arrival_hold_s: float = 5.0
+    log_path: str | None = None
+    tlog_path: str | None = None
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    vehicle_timeout_s: float = 30.0
+    exchange_timeout_s: float = 60.0
+    gossip_timeout_s: float = 10.0
+    step_timeout_s: float = 30.0
+    step_retry_s: float = 0.5
+    command_timeout_s: float = 10.0
+    telemetry_stale_s: float = 0.5
+    setpoint_rate_hz: float = 20.0
+    vehicle_lost_s: float = 3.0               # heartbeat silence after which the vehicle is lost
+    state_dir: str | None = None              # checkpoints for a restart without a new exchange
+    mavlink_key_file: str | None = None       # MAVLink 2 signing key (docs/security.md)
+    traffic_probe_s: float = 10.0             # proximity sensor: wait this long at the first step for the vehicle's traffic
+    traffic_max_age_s: float = 1.0            # real time: sensed traffic older than this is not used
+    checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
+    rt_priority: int | None = None            # SCHED_FIFO priority of the controller's threads (None: normal scheduling)
+    log_fpk_weights_every: int = 10           # w_F in the step record every this many steps and at the last (0: never)
+
+    def __post_init__(self) -> None:
+        if self.n < 1:
+            raise ValueError(f"--n must be >= 1, got {self.n}")
+        if not (0 <= self.instance < self.n):
+            raise ValueError(f"--instance {self.instance} is not a vehicle of a swarm of {self.n} (0..{self.n - 1})")
+        if self.mode.startswith("hjb") and (self.range_m is None or self.range_m < 0):
+            raise ValueError("HJB_d needs a radio range: give --range-m D or --power-mw P")
+        if self.sites_m is not None and len(self.sites_m) != self.n:
+            raise ValueError(f"the mission gives {len(self.sites_m)} destination sites for {self.n} vehicles")
+        if self.steps < 1:
+            raise ValueError(f"--steps must be >= 1, got {self.steps}")
+        if self.rt_priority is not None:
+            check_rt_priority(self.rt_priority)
+        if self.log_fpk_weights_every < 0:
+            raise ValueError(f"--log-fpk-weights-every must be >= 0, got {self.log_fpk_weights_every}")
+
+    @property
+    def system_id(self) -> int:
+        return self.instance + 1
+
+    def sites_array(self) -> np.ndarray:
+        return np.zeros((self.n, 2)) if self.sites_m is None else np.asarray(self.sites_m, dtype=float)
