@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from mfg_autopilot.paper.params import radio_range_m
-from mfg_autopilot.presets import MODES, preset_by_name
+from mfg_autopilot.presets import DEFAULT_PRESET_NAME, MODES, preset_by_name
 
 __all__ = ["main", "build_parser"]
 
@@ -24,7 +24,7 @@ def _add_common(p: argparse.ArgumentParser) -> None:
     rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P in mW; d = [P/(theta sigma^2)]^(1/alpha)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the wind streams (default: 0)")
     p.add_argument("--steps", type=int, default=200, help="control steps (default: 200: 100 s at the default preset's dt = 0.5 s, 200 s at the paper's dt = 1 s)")
-    p.add_argument("--preset", default="default", help="controller preset: default (the product controller) or paper (default: default)")
+    p.add_argument("--preset", default=DEFAULT_PRESET_NAME, help=f"controller preset: default (the product controller) or paper (default: {DEFAULT_PRESET_NAME})")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
 

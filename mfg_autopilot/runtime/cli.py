@@ -16,7 +16,7 @@ import sys
 import threading
 
 from mfg_autopilot.paper.params import radio_range_m
-from mfg_autopilot.presets import MODES
+from mfg_autopilot.presets import DEFAULT_PRESET_NAME, MODES
 from mfg_autopilot.runtime.autopilot import AutopilotConfig, run_autopilot
 from mfg_autopilot.runtime.exchange import ZenohSettings
 
@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", default=None, help="MAVLink connection string (default udpin:127.0.0.1:14540+I); "
                                                    "udpin:, udpout:, tcp:, or a serial device /dev/ttyX:BAUD")
     p.add_argument("--mode", choices=MODES, default="mfg", help="mfg (Algorithm 4) or hjb (HJB_d, Algorithm 3)")
-    p.add_argument("--preset", default="paper", help="controller preset (default: paper)")
+    p.add_argument("--preset", default=DEFAULT_PRESET_NAME, help=f"controller preset (default: {DEFAULT_PRESET_NAME})")
     p.add_argument("--n", type=int, required=True, help="swarm size N (ids 0..N-1)")
     p.add_argument("--swarm", default="swarm", help="swarm name: the Zenoh key prefix mfg/<swarm>/ (default: swarm)")
     rng = p.add_mutually_exclusive_group()

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mfg_autopilot.presets import DEFAULT_PRESET_NAME
 from mfg_autopilot.runtime.zenoh_config import ZenohSettings
 
 __all__ = ["AutopilotError", "AutopilotConfig", "check_rt_priority"]
@@ -26,7 +27,7 @@ class AutopilotConfig:
     instance: int
     connect: str
     mode: str
-    preset: str = "paper"
+    preset: str = DEFAULT_PRESET_NAME
     n: int = 1
     swarm: str = "swarm"
     range_m: float | None = None
