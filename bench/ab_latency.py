@@ -41,7 +41,7 @@ def fly(tree: Path, out: Path, rt: str, steps: int) -> None:
 
 
 def summary(dirs: list[Path]) -> dict:
-    from mfg_swarm.bench import _latency_of
+    from mfg_swarm.bench_processes import _latency_of
 
     st, split, _ = _latency_of(dirs)
     return {"latency": st, "compute_p50_ms": split.get("compute", {}).get("p50_ms"),

@@ -39,7 +39,7 @@ def test_unknown_section_is_refused(tmp_path):
 
 
 def test_swarm_repeats_are_summarised_as_median_and_range():
-    from mfg_swarm.bench import _swarm_summary
+    from mfg_swarm.bench_processes import _swarm_summary
 
     reps = [{"n": 25, "realtime_factor_flight": x, "cpu_ms_per_pair_step_flight": c, "wall_start_up_s": 40.0,
              "realtime_factor_total": 0.5, "load_before": [1.0], "partial": False} for x, c in ((5.0, 7.0), (6.0, 6.5), (4.0, 8.0))]
@@ -50,7 +50,7 @@ def test_swarm_repeats_are_summarised_as_median_and_range():
 
 
 def test_latency_p99_confidence_interval_brackets_the_true_p99_and_counts_the_samples_over_target():
-    from mfg_swarm.bench import _latency_stats
+    from mfg_swarm.bench_processes import _latency_stats
 
     # given 640 samples (the bench's 4 vehicles x 160 steps) from a known distribution: exponential,
     # mean 1 ms, whose true p99 is ln(100) ms = 4.605 ms; seed fixed, 200 repeats
@@ -69,7 +69,8 @@ def test_latency_p99_confidence_interval_brackets_the_true_p99_and_counts_the_sa
 
 
 def test_host_floor_interpolates_the_meter_per_cpu_and_skips_unmeasured_cpus():
-    from mfg_swarm.bench import format_table, host_floor
+    from mfg_swarm.bench import format_table
+    from mfg_swarm.bench_processes import host_floor
 
     h = {"cpu": 0, "fifo": True, "duration_s": 10.0, "per_s_over_2ms": 1.0, "per_s_over_5ms": 0.1, "max_ms": 6.0,
          "lost_fraction": 0.01, "job_exceedance": {"1": 0.001, "2": 0.003, "3": 0.01, "4": 0.02}}
@@ -86,7 +87,7 @@ def test_host_floor_interpolates_the_meter_per_cpu_and_skips_unmeasured_cpus():
 def test_cpu_isolation_picks_only_the_named_controller_and_keeps_a_cpu_for_the_rest():
     import os
 
-    from mfg_swarm.bench import _CpuIsolation
+    from mfg_swarm.bench_processes import _CpuIsolation
 
     cpus = sorted(os.sched_getaffinity(0))
     if len(cpus) < 2:
