@@ -26,6 +26,7 @@ from .messages import (
     CommandLong,
     ExtendedSysState,
     GlobalPositionInt,
+    GpsGlobalOrigin,
     Heartbeat,
     HomePosition,
     LocalPositionNed,
@@ -42,14 +43,17 @@ from .messages import (
     SysStatus,
     UnknownMessage,
     acceleration_setpoint,
+    altitude_hold_setpoint,
 )
 from .port import MavlinkPort
 from .px4 import (
     ACC_ONLY_TYPE_MASK,
+    ALT_HOLD_ACC_TYPE_MASK,
     PX4_HOLD,
     PX4_LAND,
     PX4_OFFBOARD,
     PX4_POSCTL,
+    PX4_TAKEOFF,
     MavAutopilot,
     MavCmd,
     MavFrame,

@@ -32,6 +32,7 @@ from .messages import (  # noqa: E402
     GlobalPositionInt,
     Heartbeat,
     HomePosition,
+    GpsGlobalOrigin,
     LocalPositionNed,
     Message,
     NamedValueInt,
@@ -108,6 +109,12 @@ _ENCODERS: dict[type, Callable] = {
         0.0,
         0.0,
         0.0,
+    ),
+    GpsGlobalOrigin: lambda mav, m: mav.gps_global_origin_encode(
+        _clip_i(m.lat_deg * 1e7, -(2**31), 2**31 - 1),
+        _clip_i(m.lon_deg * 1e7, -(2**31), 2**31 - 1),
+        _clip_i(m.alt_amsl_m * 1e3, -(2**31), 2**31 - 1),
+        int(m.time_usec),
     ),
     SysStatus: lambda mav, m: mav.sys_status_encode(
         m.sensors_present,
@@ -197,6 +204,7 @@ _DECODERS: dict[str, Callable] = {
         p.vz * 1e-2,
         None if p.hdg == 65535 else p.hdg * 1e-2,
     ),
+    "GPS_GLOBAL_ORIGIN": lambda p: GpsGlobalOrigin(p.latitude * 1e-7, p.longitude * 1e-7, p.altitude * 1e-3, p.time_usec),
     "HOME_POSITION": lambda p: HomePosition(p.latitude * 1e-7, p.longitude * 1e-7, p.altitude * 1e-3, p.x, p.y, p.z),
     "SYS_STATUS": lambda p: SysStatus(
         p.onboard_control_sensors_present,

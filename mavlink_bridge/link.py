@@ -43,6 +43,8 @@ from .messages import (
     AdsbVehicle,
     CommandAck,
     CommandLong,
+    ExtendedSysState,
+    GpsGlobalOrigin,
     Heartbeat,
     LocalPositionNed,
     Message,
@@ -54,8 +56,10 @@ from .messages import (
     BadData,
     Received,
     SetPositionTargetLocalNed,
+    altitude_hold_setpoint,
     acceleration_setpoint,
 )
+from .codec import MAVLINK_MSG_ID
 from .port import MavlinkPort
 from .ratelog import RejectLog
 from .signing import SIG_UNSIGNED, SIG_VALID, SigningConfig
@@ -73,6 +77,8 @@ from .px4 import (
     Px4Mode,
 )
 from .tlog import TlogWriter
+
+GPS_GLOBAL_ORIGIN_ID = MAVLINK_MSG_ID["GPS_GLOBAL_ORIGIN"]
 
 __all__ = ["VehicleLink", "COMPANION_COMPONENT_ID"]
 
@@ -458,13 +464,18 @@ class VehicleLink:
         """Milliseconds since this link was opened (the default setpoint timestamp)."""
         return int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
 
-    def send_acc_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> float:
-        """One SET_POSITION_TARGET_LOCAL_NED, LOCAL_NED frame, acceleration-only type_mask
-        3135, to the target vehicle only. Returns ``time.monotonic()`` when it was handed to
-        the transport. Raises ValueError for non-finite input."""
-        sp = acceleration_setpoint(
-            self.target_system, self.target_component, acc_ned_m_s2, self.time_boot_ms() if time_boot_ms is None else time_boot_ms
-        )
+    def _setpoint(self, acc_ned_m_s2, time_boot_ms: int, z_m: float | None) -> SetPositionTargetLocalNed:
+        if z_m is None:
+            return acceleration_setpoint(self.target_system, self.target_component, acc_ned_m_s2, time_boot_ms)
+        return altitude_hold_setpoint(self.target_system, self.target_component, acc_ned_m_s2[0:2], z_m, time_boot_ms)
+
+    def send_acc_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None,
+                          z_m: float | None = None) -> float:
+        """One SET_POSITION_TARGET_LOCAL_NED, LOCAL_NED frame, to the target vehicle only:
+        acceleration-only (type_mask 3135), or with ``z_m`` (down, m, relative to the EKF origin)
+        horizontal acceleration with altitude hold (type_mask 3387). Returns ``time.monotonic()``
+        when it was handed to the transport. Raises ValueError for non-finite input."""
+        sp = self._setpoint(acc_ned_m_s2, self.time_boot_ms() if time_boot_ms is None else time_boot_ms, z_m)
         return self._send(sp)
 
     def step_lockstep(
@@ -484,10 +495,12 @@ class VehicleLink:
             if time.monotonic() >= deadline:
                 raise TelemetryTimeout(f"lockstep LOCAL_POSITION_NED after {time_boot_ms} ms", self.target_system, timeout_s)
 
-    def set_held_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None) -> None:
-        """The acceleration the setpoint stream repeats (stamped ``time_boot_ms``, or the
-        link clock if None). Raises ValueError for non-finite input."""
-        sp = acceleration_setpoint(self.target_system, self.target_component, acc_ned_m_s2, 0 if time_boot_ms is None else time_boot_ms)
+    def set_held_setpoint(self, acc_ned_m_s2: tuple[float, float, float], time_boot_ms: int | None = None,
+                          z_m: float | None = None) -> None:
+        """The setpoint the stream repeats (stamped ``time_boot_ms``, or the link clock if None);
+        with ``z_m`` an altitude-hold setpoint (``send_acc_setpoint``). Raises ValueError for
+        non-finite input."""
+        sp = self._setpoint(acc_ned_m_s2, 0 if time_boot_ms is None else time_boot_ms, z_m)
         with self._cond:
             self._held = sp
             self._held_time_boot_ms = time_boot_ms
@@ -608,6 +621,42 @@ class VehicleLink:
     def land(self, timeout_s: float) -> Heartbeat:
         """PX4 Land (AUTO.LAND: main 4, sub 6)."""
         return self.set_mode(PX4_LAND, timeout_s)
+
+    def takeoff(self, alt_amsl_m: float | None, timeout_s: float) -> CommandAck:
+        """MAV_CMD_NAV_TAKEOFF (22): climb to ``alt_amsl_m`` (param 7; None: the vehicle's
+        MIS_TAKEOFF_ALT above home), then Hold. Only the command's ACK is waited for; the climb is
+        watched with ``wait_landed_state`` / the position. Raises CommandDenied (e.g. disarmed)."""
+        nan = math.nan
+        alt = nan if alt_amsl_m is None else float(alt_amsl_m)
+        return self.command_long(MavCmd.NAV_TAKEOFF, (nan, 0.0, 0.0, nan, nan, nan, alt), timeout_s)
+
+    def wait_origin(self, timeout_s: float, request_every_s: float = 1.0) -> GpsGlobalOrigin:
+        """The vehicle's EKF origin (GPS_GLOBAL_ORIGIN, #49), asking for it with MAV_CMD_REQUEST_MESSAGE
+        every ``request_every_s`` until it comes (PX4 sends it when the origin is set and on request;
+        a vehicle without a GPS fix has none yet). Raises TelemetryTimeout."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            got = self.latest(GpsGlobalOrigin)
+            if got is not None:
+                return got
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TelemetryTimeout("GPS_GLOBAL_ORIGIN", self.target_system, timeout_s)
+            try:
+                self.request_message(GPS_GLOBAL_ORIGIN_ID, min(left, request_every_s))
+            except (CommandDenied, CommandTimeout):
+                pass                                   # no origin yet (or the request was lost): ask again
+            got = self.wait_for(GpsGlobalOrigin, lambda m: True, max(0.0, min(request_every_s, deadline - time.monotonic())))
+            if got is not None:
+                return got
+
+    def wait_landed_state(self, states: tuple[int, ...], timeout_s: float) -> ExtendedSysState:
+        """The first EXTENDED_SYS_STATE whose landed_state is one of ``states`` (MavLandedState).
+        Raises TelemetryTimeout."""
+        m = self.wait_for(ExtendedSysState, lambda e: e.landed_state in states, timeout_s)
+        if m is None:
+            raise TelemetryTimeout(f"EXTENDED_SYS_STATE landed_state in {tuple(int(s) for s in states)}", self.target_system, timeout_s)
+        return m
 
     def _arm_disarm(self, arm: bool, timeout_s: float, force: bool) -> Heartbeat:
         deadline = time.monotonic() + timeout_s

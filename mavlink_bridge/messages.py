@@ -16,6 +16,7 @@ from typing import ClassVar
 
 from .px4 import (
     ACC_ONLY_TYPE_MASK,
+    ALT_HOLD_ACC_TYPE_MASK,
     MavAutopilot,
     MavFrame,
     MavModeFlag,
@@ -34,6 +35,7 @@ __all__ = [
     "Attitude",
     "GlobalPositionInt",
     "HomePosition",
+    "GpsGlobalOrigin",
     "SysStatus",
     "ExtendedSysState",
     "CommandLong",
@@ -53,6 +55,7 @@ __all__ = [
     "UnknownMessage",
     "Received",
     "acceleration_setpoint",
+    "altitude_hold_setpoint",
 ]
 
 _NAN = math.nan
@@ -156,6 +159,18 @@ class HomePosition(Message):
     x_m: float = 0.0
     y_m: float = 0.0
     z_m: float = 0.0
+    received_monotonic_s: float = field(default=_NAN, compare=False)
+
+
+@dataclass(frozen=True)
+class GpsGlobalOrigin(Message):
+    """GPS_GLOBAL_ORIGIN (#49): the EKF origin, which the vehicle's LOCAL_NED is relative to."""
+
+    MSG_NAME: ClassVar[str] = "GPS_GLOBAL_ORIGIN"
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    time_usec: int = 0
     received_monotonic_s: float = field(default=_NAN, compare=False)
 
 
@@ -269,6 +284,30 @@ class SetPositionTargetLocalNed(Message):
     @property
     def acc_ned_m_s2(self) -> tuple[float, float, float]:
         return (self.afx_m_s2, self.afy_m_s2, self.afz_m_s2)
+
+
+def altitude_hold_setpoint(
+    target_system: int,
+    target_component: int,
+    acc_ne_m_s2: tuple[float, float],
+    z_m: float,
+    time_boot_ms: int,
+) -> SetPositionTargetLocalNed:
+    """Horizontal acceleration with altitude hold (LOCAL_NED, type_mask 3387 = ALT_HOLD_ACC_TYPE_MASK):
+    ax, ay feed-forward, z a position (down, relative to the vehicle's EKF origin)."""
+    ax, ay, z = float(acc_ne_m_s2[0]), float(acc_ne_m_s2[1]), float(z_m)
+    if not all(math.isfinite(a) for a in (ax, ay, z)):
+        raise ValueError(f"altitude-hold setpoint must be finite, got acc {acc_ne_m_s2}, z {z_m}")
+    return SetPositionTargetLocalNed(
+        time_boot_ms=int(time_boot_ms) & 0xFFFFFFFF,
+        target_system=target_system,
+        target_component=target_component,
+        coordinate_frame=MavFrame.LOCAL_NED,
+        type_mask=int(ALT_HOLD_ACC_TYPE_MASK),
+        z_m=z,
+        afx_m_s2=ax,
+        afy_m_s2=ay,
+    )
 
 
 def acceleration_setpoint(

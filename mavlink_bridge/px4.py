@@ -19,6 +19,7 @@ __all__ = [
     "MavSeverity",
     "PositionTargetTypeMask",
     "ACC_ONLY_TYPE_MASK",
+    "ALT_HOLD_ACC_TYPE_MASK",
     "Px4MainMode",
     "Px4AutoSubMode",
     "Px4Mode",
@@ -26,6 +27,7 @@ __all__ = [
     "PX4_HOLD",
     "PX4_LAND",
     "PX4_POSCTL",
+    "PX4_TAKEOFF",
     "command_name",
     "result_name",
 ]
@@ -33,6 +35,7 @@ __all__ = [
 
 class MavCmd(IntEnum):
     NAV_LAND = 21
+    NAV_TAKEOFF = 22
     DO_SET_MODE = 176
     COMPONENT_ARM_DISARM = 400
     GET_HOME_POSITION = 410
@@ -152,6 +155,19 @@ ACC_ONLY_TYPE_MASK = (
 """Acceleration-only setpoint: ignore position, velocity, yaw and yaw rate (3135 = 0x0C3F)."""
 assert int(ACC_ONLY_TYPE_MASK) == 3135
 
+ALT_HOLD_ACC_TYPE_MASK = (
+    PositionTargetTypeMask.X_IGNORE
+    | PositionTargetTypeMask.Y_IGNORE
+    | PositionTargetTypeMask.VELOCITY_IGNORE
+    | PositionTargetTypeMask.AZ_IGNORE
+    | PositionTargetTypeMask.YAW_IGNORE
+    | PositionTargetTypeMask.YAW_RATE_IGNORE
+)
+"""Altitude hold with horizontal acceleration: z position, ax, ay; ignore x, y, velocity, az, yaw,
+yaw rate (3387 = 0x0D3B). PX4 runs z through its position loop and takes ax, ay as feed-forward
+(docs/mavlink.md)."""
+assert int(ALT_HOLD_ACC_TYPE_MASK) == 3387
+
 
 class Px4MainMode(IntEnum):
     """PX4 ``custom_main_mode`` (px4_custom_mode.h)."""
@@ -217,6 +233,7 @@ PX4_OFFBOARD = Px4Mode(Px4MainMode.OFFBOARD)
 PX4_HOLD = Px4Mode(Px4MainMode.AUTO, Px4AutoSubMode.LOITER)
 PX4_LAND = Px4Mode(Px4MainMode.AUTO, Px4AutoSubMode.LAND)
 PX4_POSCTL = Px4Mode(Px4MainMode.POSCTL)
+PX4_TAKEOFF = Px4Mode(Px4MainMode.AUTO, Px4AutoSubMode.TAKEOFF)
 
 
 def command_name(command: int) -> str:

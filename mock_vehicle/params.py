@@ -34,6 +34,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("SIM_WIND_V21", 0.0, -10.0, 10.0, "m/s/sqrt(s)", "V_o[1][0]: wind diffusion (eq. 1)"),
     ParamSpec("SIM_WIND_V22", 0.1, -10.0, 10.0, "m/s/sqrt(s)", "V_o[1][1]: wind diffusion (eq. 1)"),
     ParamSpec("SIM_ARM_DENY", 0.0, 0.0, 1.0, "bool", "1: refuse arming as a failed PX4 preflight check would"),
+    ParamSpec("MIS_TAKEOFF_ALT", 2.5, 0.0, 1000.0, "m", "Takeoff altitude above home when MAV_CMD_NAV_TAKEOFF gives none (PX4)"),
+    ParamSpec("MPC_TKO_SPEED", 1.5, 0.1, 10.0, "m/s", "Takeoff climb speed (PX4)"),
+    ParamSpec("MPC_LAND_SPEED", 0.7, 0.1, 5.0, "m/s", "Landing descent speed (PX4)"),
+    ParamSpec("MPC_Z_VEL_MAX_UP", 3.0, 0.1, 10.0, "m/s", "Largest climb speed of the altitude loop (PX4)"),
+    ParamSpec("MPC_Z_VEL_MAX_DN", 1.5, 0.1, 10.0, "m/s", "Largest descent speed of the altitude loop (PX4)"),
+    ParamSpec("COM_DISARM_LAND", 2.0, -1.0, 20.0, "s", "Auto-disarm this long after touchdown; < 0 never (PX4)"),
 )
 
 

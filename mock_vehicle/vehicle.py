@@ -16,9 +16,28 @@ the mode machine, the setpoint filter or the parameters, and logged once per kin
 SET_POSITION_TARGET_LOCAL_NED", ... for the commanding messages, "... other message"
 for the rest). Signing what the vehicle sends is the port's job (``MavlinkPort``).
 
-Dynamics: frozen at the initial state until the first OFFBOARD entry (the vehicle hovers at
-its slot); then OFFBOARD integrates the held setpoint, every other mode PX4 Hold
-(``hold_acc_m_s2`` around where it began). Altitude is fixed (z = -altitude) except in LAND.
+Dynamics (air start, the default): frozen at the initial state until the first OFFBOARD entry
+(the vehicle hovers at its slot); then OFFBOARD integrates the held setpoint, every other mode PX4
+Hold (``hold_acc_m_s2`` around where it began).
+
+Ground start (``start_on_ground``, issue 19): the vehicle boots ON_GROUND, disarmed, at its launch
+point, and does what PX4 does: arm; MAV_CMD_NAV_TAKEOFF climbs at MPC_TKO_SPEED to the commanded
+altitude (or MIS_TAKEOFF_ALT) in AUTO.TAKEOFF, then holds in AUTO.LOITER; OFFBOARD from the ground
+leaves it only when the setpoint asks to climb (a z position above, or vz < 0); MAV_CMD_NAV_LAND
+descends at MPC_LAND_SPEED, touches down and disarms COM_DISARM_LAND later. EXTENDED_SYS_STATE
+reports ON_GROUND -> TAKEOFF -> IN_AIR -> LANDING -> ON_GROUND.
+
+Altitude: a setpoint with a z position (type_mask 3387: z + ax, ay) is tracked like PX4's
+altitude loop (vz = clip(z_sp - z, -MPC_Z_VEL_MAX_UP, MPC_Z_VEL_MAX_DN)); Hold keeps the altitude it
+began at; an acceleration-only setpoint (3135) keeps the altitude constant (a real PX4 would hover
+on its thrust estimate and drift slowly: docs/mavlink.md). In lockstep the vertical manoeuvres
+of the AUTO modes (takeoff, land) run on the wall clock with the horizontal plant frozen, since
+lockstep time advances only with OFFBOARD setpoints.
+
+Frames (``geo.LocalFrame``): the plant flies in the world frame (the tangent plane at the home);
+with ``origin`` (its EKF origin, issue 19) the vehicle reports LOCAL_POSITION_NED relative to it,
+GLOBAL_POSITION_INT and HOME_POSITION in WGS84 (pymap3d), and GPS_GLOBAL_ORIGIN at boot and on
+request, as a real PX4 does.
 """
 
 from __future__ import annotations
@@ -36,6 +55,7 @@ from mavlink_bridge import (
     PX4_LAND,
     PX4_OFFBOARD,
     PX4_POSCTL,
+    PX4_TAKEOFF,
     Attitude,
     AutopilotVersion,
     BadData,
@@ -44,6 +64,7 @@ from mavlink_bridge import (
     CommandLong,
     ExtendedSysState,
     GlobalPositionInt,
+    GpsGlobalOrigin,
     Heartbeat,
     HomePosition,
     LocalPositionNed,
@@ -78,6 +99,7 @@ from mavlink_bridge.ratelog import RejectLog
 
 from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME
 
+from .geo import LocalFrame
 from .params import ParamTable
 from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 from .proximity import traffic_reports
@@ -88,10 +110,10 @@ log = logging.getLogger("mock_vehicle")
 
 EARTH_RADIUS_M = 6_378_137.0
 GRAVITY_M_S2 = 9.80665
-OFFBOARD_MIN_RATE_GAP_S = 0.5  # >= 2 Hz
-OFFBOARD_MIN_STREAM_S = 1.0  # for > 1 s
-LAND_DESCENT_M_S = 1.0
 HOLD_LIKE = (PX4_HOLD, PX4_POSCTL)
+Z_GAIN_PER_S = 1.0              # altitude loop: vz = clip(Z_GAIN (z_sp - z), ...), like MPC_Z_P's default
+TAKEOFF_DONE_M = 0.05           # AUTO.TAKEOFF is over within this of its altitude
+LIFTOFF_M = 0.1                 # OFFBOARD from the ground: a z setpoint this far above the ground lifts off
 CAPABILITIES = 2 | 8 | 128 | 8192  # PARAM_FLOAT | COMMAND_INT | SET_POSITION_TARGET_LOCAL_NED | MAVLINK2
 
 SETPOINT_LIMITS = {"position_m": 1.0e5, "velocity_m_s": 100.0, "acceleration_m_s2": 100.0, "yaw_rad": 100.0, "yaw_rate_rad_s": 100.0}
@@ -136,6 +158,8 @@ class VehicleConfig:
     lockstep: bool = False
     com_of_loss_t_s: float = 1.0
     deny_arming: bool = False
+    start_on_ground: bool = False                          # boot ON_GROUND, disarmed, at initial_pos_m (z = 0)
+    origin: tuple[float, float, float] | None = None       # EKF origin (lat_deg, lon_deg, alt_amsl_m); None: the home
     rates_hz: dict = field(
         default_factory=lambda: {
             "heartbeat": 1.0,
@@ -249,11 +273,20 @@ class MockVehicle:
             initial_vel_m_s=None if cfg.initial_vel_m_s is None else np.array([cfg.initial_vel_m_s], dtype=float),
         )
         self.rejects = RejectLog(log)
+        self.frame = LocalFrame(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_amsl_m, cfg.origin)
         self.armed = False
         self.mode: Px4Mode = PX4_HOLD
-        self.flying = False  # False until the first OFFBOARD entry: plant frozen
-        self.z_m = -float(cfg.altitude_m)
+        self.flying = False  # False until the first OFFBOARD entry (or takeoff): plant frozen
+        self.landed = bool(cfg.start_on_ground)
+        self.z_m = 0.0 if self.landed else -float(cfg.altitude_m)      # world z: down from the home's altitude
         self.vz_m_s = 0.0
+        self.z_target_m = self.z_m
+        self._landed_since_s: float | None = 0.0 if self.landed else None
+        self._vert_wall_s = 0.0          # lockstep: wall time the AUTO modes' vertical motion was integrated to
+        if self.landed:
+            self.plant.states[0, 2:4] = 0.0
+        self.home = self._here()         # (lat, lon, alt, x, y, z local): set at boot and at arming, as PX4
+        self._origin_sent = cfg.origin is None
         self.hold_pos_m = np.array(cfg.initial_pos_m, dtype=float)
         self.setpoint: SetPositionTargetLocalNed | None = None
         self.applied_acc_m_s2 = np.zeros(2)
@@ -343,20 +376,15 @@ class MockVehicle:
             elif self._world_pending_ms is None:  # idempotent retry answer (none while the world has not answered)
                 self._send_many(self._traffic_msgs() + [self._local_position()], port)
             return
-        now = self.wall_s()
-        if self._stream_start_wall is None or now - self._last_sp_wall > OFFBOARD_MIN_RATE_GAP_S:
-            self._stream_start_wall = now
-        self._last_sp_wall = now
+        self._last_sp_wall = self.wall_s()
         self._last_sp_sim_s = self.sim_time_s()
         self.setpoint = sp
 
     def _offboard_stream_ok(self) -> bool:
-        now = self.wall_s()
-        return (
-            self._stream_start_wall is not None
-            and now - self._last_sp_wall <= OFFBOARD_MIN_RATE_GAP_S
-            and now - self._stream_start_wall > OFFBOARD_MIN_STREAM_S
-        )
+        """PX4's offboard check (commander/HealthAndArmingChecks/checks/offboardCheck.cpp): an offboard
+        setpoint arrived within COM_OF_LOSS_T. A timeout, not a stream duration: MAVSDK's
+        set_*() then start() at once is accepted."""
+        return self.wall_s() - self._last_sp_wall <= self.params["COM_OF_LOSS_T"]
 
     def _on_command(self, target_system, target_component, command, params, r: Received, port) -> None:
         if not self._for_me(target_system, target_component):
@@ -374,6 +402,8 @@ class MockVehicle:
                 result = self._request_mode(Px4Mode(int(p[1]), int(p[2])))
         elif command == MavCmd.NAV_LAND:
             result = self._request_mode(PX4_LAND)
+        elif command == MavCmd.NAV_TAKEOFF:
+            result = self._takeoff(p[6])
         elif command == MavCmd.SET_MESSAGE_INTERVAL:
             result = self._set_interval(p[0], p[1])
         elif command in (MavCmd.REQUEST_MESSAGE, MavCmd.GET_HOME_POSITION, MavCmd.REQUEST_AUTOPILOT_CAPABILITIES):
@@ -397,6 +427,8 @@ class MockVehicle:
                 return MavResult.DENIED
             if not self.armed:
                 self.armed = True
+                self.home = self._here()          # PX4 sets home where it arms
+                self._landed_since_s = None       # COM_DISARM_LAND counts from a touchdown, not from arming
                 log.info("armed")
                 self._send_heartbeat()
             return MavResult.ACCEPTED
@@ -408,13 +440,42 @@ class MockVehicle:
             return MavResult.ACCEPTED
         return MavResult.DENIED
 
+    def _takeoff(self, alt_amsl_m: float) -> MavResult:
+        """MAV_CMD_NAV_TAKEOFF: climb at MPC_TKO_SPEED to ``alt_amsl_m`` (NaN: MIS_TAKEOFF_ALT above
+        home) in AUTO.TAKEOFF, then AUTO.LOITER. Denied while disarmed (PX4 needs an armed vehicle)."""
+        if not self.armed:
+            self._statustext(MavSeverity.CRITICAL, "Takeoff denied! Please arm first")
+            self.rejects.reject("takeoff denied", "vehicle disarmed")
+            return MavResult.DENIED
+        home_alt = self.home[2]
+        agl = alt_amsl_m - home_alt if math.isfinite(alt_amsl_m) else self.params["MIS_TAKEOFF_ALT"]
+        if not (0.0 < agl <= 1000.0):
+            self.rejects.reject("takeoff denied", f"takeoff altitude {agl:.1f} m above home out of (0, 1000]")
+            return MavResult.DENIED
+        self.z_target_m = self.frame.local_z_to_world(self.home[5]) - agl
+        self._lift_off()
+        self._set_mode(PX4_TAKEOFF, reason="takeoff command")
+        return MavResult.ACCEPTED
+
+    def _lift_off(self) -> None:
+        if self.landed:
+            self.landed = False
+            self._landed_since_s = None
+            self.plant.states[0, 2:4] = 0.0
+            self.hold_pos_m = self.state[0:2].copy()
+            log.info("lift-off")
+        self.flying = True
+        self._vert_wall_s = self.wall_s()
+
     def _request_mode(self, mode: Px4Mode) -> MavResult:
         if mode.main_mode == Px4MainMode.OFFBOARD:
             mode = PX4_OFFBOARD
             if self.mode != PX4_OFFBOARD and not self._offboard_stream_ok():
                 self._statustext(MavSeverity.CRITICAL, "Switching to Offboard is currently not available")
-                self.rejects.reject("OFFBOARD refused", "no setpoint stream at >= 2 Hz for > 1 s")
+                self.rejects.reject("OFFBOARD refused", f"no offboard setpoint within COM_OF_LOSS_T = {self.params['COM_OF_LOSS_T']:g} s")
                 return MavResult.TEMPORARILY_REJECTED
+        elif mode == PX4_TAKEOFF:
+            return self._takeoff(math.nan)
         elif mode.main_mode == Px4MainMode.AUTO and mode.sub_mode in (0, PX4_HOLD.sub_mode):
             mode = PX4_HOLD
         elif mode not in (PX4_LAND, PX4_POSCTL):
@@ -429,10 +490,13 @@ class MockVehicle:
         log.info("mode %s -> %s (%s)", self.mode, mode, reason)
         self.mode = mode
         if mode == PX4_OFFBOARD:
-            self.flying = True
+            if not self.landed:
+                self.flying = True
             self._last_sp_sim_s = self.sim_time_s()
         elif mode in HOLD_LIKE or mode == PX4_LAND:
             self.hold_pos_m = self.state[0:2].copy()
+            self.z_target_m = self.z_m
+        self._vert_wall_s = self.wall_s()
         self._send_heartbeat()
 
     def _on_set_mode_msg(self, m: SetMode) -> None:
@@ -527,6 +591,8 @@ class MockVehicle:
             acc_x = acc_x + 2.0 * (vel_x - vx)
             acc_y = acc_y + 2.0 * (vel_y - vy)
         # sp.coordinate_frame BODY_NED: yaw is held at 0 (north), so body and local NED coincide
+        if self.cfg.origin is not None:
+            acc_x, acc_y = self.frame.local_vec_to_world(acc_x, acc_y)
         return np.array([acc_x, acc_y])
 
     def _current_acc_m_s2(self) -> np.ndarray:
@@ -535,7 +601,7 @@ class MockVehicle:
         return hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
 
     def _moving(self) -> bool:
-        return self.flying and self.armed
+        return self.flying and self.armed and not self.landed
 
     def _step(self, dt_s: float) -> None:
         acc = self._current_acc_m_s2()
@@ -547,17 +613,80 @@ class MockVehicle:
         if not np.isfinite(self.plant.states).all():
             self.rejects.reject("non-finite plant state", "restoring the previous state")
             self.plant.states = before
+        self._vertical(dt_s)
+
+    # ------------------------------------------------------------------ altitude and the ground
+    def _z_setpoint_world(self) -> tuple[float | None, float | None]:
+        """(z, vz) the OFFBOARD setpoint asks for in the world frame, None where the mask ignores it."""
+        sp = self.setpoint
+        if sp is None:
+            return None, None
+        m = sp.type_mask
+        z = None if m & int(_F.Z_IGNORE) else self.frame.local_z_to_world(float(sp.z_m))
+        vz = None if m & int(_F.VZ_IGNORE) else float(sp.vz_m_s)
+        return z, vz
+
+    def _vertical(self, dt_s: float) -> None:
+        """z over dt_s in the current mode (module docstring); touchdown, takeoff completion."""
+        p = self.params
+        up, dn = p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"]
+        vz = 0.0
         if self.mode == PX4_LAND:
-            self.vz_m_s = LAND_DESCENT_M_S
-            self.z_m = min(0.0, self.z_m + LAND_DESCENT_M_S * dt_s)
-            if self.z_m >= 0.0:
-                self.vz_m_s = 0.0
-                self.armed = False
-                self.plant.states[0, 2:4] = 0.0
-                log.info("landed: disarmed")
-                self._send_heartbeat()
+            vz = p["MPC_LAND_SPEED"]
+        elif self.mode == PX4_TAKEOFF:
+            vz = -min(p["MPC_TKO_SPEED"], max(0.0, self.z_m - self.z_target_m) / dt_s)
+        elif self.mode == PX4_OFFBOARD:
+            z_sp, vz_sp = self._z_setpoint_world()
+            if z_sp is not None:
+                vz = min(max(Z_GAIN_PER_S * (z_sp - self.z_m) + (vz_sp or 0.0), -up), dn)
+            elif vz_sp is not None:
+                vz = min(max(vz_sp, -up), dn)
+        elif self.mode in HOLD_LIKE:
+            vz = min(max(Z_GAIN_PER_S * (self.z_target_m - self.z_m), -up), dn)
+        if self.landed:
+            vz = 0.0                                # on the ground until a takeoff or a climbing setpoint lifts it off
+        self.vz_m_s = vz
+        self.z_m = min(0.0, self.z_m + vz * dt_s) if (self.cfg.start_on_ground or self.mode == PX4_LAND) else self.z_m + vz * dt_s
+        if self.mode == PX4_TAKEOFF and self.z_m - self.z_target_m <= TAKEOFF_DONE_M:
+            self.z_target_m = self.z_m
+            log.info("takeoff done at %.2f m above home", -self.z_m)
+            self._set_mode(PX4_HOLD, reason="takeoff done")
+        if not self.landed and self.z_m >= 0.0 and vz >= 0.0 and (self.mode == PX4_LAND or self.cfg.start_on_ground):
+            self._touch_down()
+
+    def _touch_down(self) -> None:
+        self.landed = True
+        self.flying = False
+        self.vz_m_s = 0.0
+        self.z_m = 0.0
+        self.plant.states[0, 2:4] = 0.0
+        self._landed_since_s = self.wall_s()
+        log.info("landed")
+        if self.params["COM_DISARM_LAND"] == 0.0 or not self.cfg.start_on_ground:
+            self._disarm_landed()
+
+    def _disarm_landed(self) -> None:
+        if self.armed:
+            self.armed = False
+            log.info("landed: disarmed")
+            self._send_heartbeat()
+
+    def _ground_tick(self) -> None:
+        """PX4's auto-disarm COM_DISARM_LAND after touchdown; the AUTO modes' vertical motion in lockstep."""
+        now = self.wall_s()
+        if self.cfg.lockstep and (self.mode in (PX4_TAKEOFF, PX4_LAND) or (self.mode in HOLD_LIKE and self.z_m != self.z_target_m)):
+            while self._vert_wall_s + self.cfg.physics_dt_s <= now:
+                self._vertical(self.cfg.physics_dt_s)
+                self._vert_wall_s += self.cfg.physics_dt_s
         else:
-            self.vz_m_s = 0.0
+            self._vert_wall_s = now
+        t = self.params["COM_DISARM_LAND"]
+        if self.landed and self.armed and self._landed_since_s is not None and t >= 0 and now - self._landed_since_s >= t:
+            self._disarm_landed()
+        if self.landed and self.mode == PX4_OFFBOARD and self.armed:
+            z_sp, vz_sp = self._z_setpoint_world()
+            if (z_sp is not None and z_sp < -LIFTOFF_M) or (vz_sp is not None and vz_sp < 0.0):
+                self._lift_off()            # PX4 leaves idle in OFFBOARD only when the setpoint asks to climb
 
     def _lockstep_step(self) -> None:
         """Lockstep: one control step of dt_s with the setpoint just received, then telemetry.
@@ -662,6 +791,10 @@ class MockVehicle:
             self._statustext(MavSeverity.WARNING, "Failsafe: offboard setpoints lost, Hold")
             log.warning("offboard setpoint stream lost for > COM_OF_LOSS_T = %g s: failsafe to HOLD", self.params["COM_OF_LOSS_T"])
             self._set_mode(PX4_HOLD, reason="offboard loss failsafe")
+        self._ground_tick()
+        if not self._origin_sent:
+            self._origin_sent = True
+            self._send(self._origin_msg(), None)          # PX4 announces its EKF origin when it is set
         if not self.cfg.lockstep:
             elapsed = self.wall_s()
             h = self.cfg.physics_dt_s
@@ -742,7 +875,23 @@ class MockVehicle:
 
     def _local_position(self) -> LocalPositionNed:
         x, y, vx, vy = self.state.tolist()
-        return LocalPositionNed(self.time_boot_ms(), x, y, self.z_m, vx, vy, self.vz_m_s)
+        if self.cfg.origin is None:
+            return LocalPositionNed(self.time_boot_ms(), x, y, self.z_m, vx, vy, self.vz_m_s)
+        lx, ly, lz, lvx, lvy = self.frame.world_to_local(x, y, self.z_m, vx, vy)
+        return LocalPositionNed(self.time_boot_ms(), lx, ly, lz, lvx, lvy, self.vz_m_s)
+
+    def _here(self) -> tuple[float, float, float, float, float, float]:
+        """(lat, lon, alt AMSL, and x, y, z in LOCAL_NED) of where the vehicle is: PX4's home."""
+        x, y = self.state[0:2].tolist()
+        if self.cfg.origin is None:
+            return (self.cfg.home_lat_deg, self.cfg.home_lon_deg, self.cfg.home_alt_amsl_m, 0.0, 0.0, 0.0)
+        lat, lon, _ = self.frame.world_to_geodetic(x, y, 0.0)
+        lx, ly, lz, _, _ = self.frame.world_to_local(x, y, 0.0, 0.0, 0.0)
+        return (lat, lon, self.cfg.home_alt_amsl_m, lx, ly, lz)
+
+    def _origin_msg(self) -> GpsGlobalOrigin:
+        lat, lon, alt = self.frame.origin_lat_lon_alt
+        return GpsGlobalOrigin(lat, lon, alt, 0)
 
     def _attitude(self) -> Attitude:
         an, ae = self.applied_acc_m_s2.tolist() if self._moving() else (0.0, 0.0)
@@ -750,6 +899,9 @@ class MockVehicle:
 
     def _global_position(self) -> GlobalPositionInt:
         x, y, vx, vy = self.state.tolist()
+        if self.cfg.origin is not None:
+            lat, lon, alt = self.frame.world_to_geodetic(x, y, self.z_m)
+            return GlobalPositionInt(self.time_boot_ms(), lat, lon, alt, -self.z_m, vx, vy, self.vz_m_s, 0.0)
         lat0 = self.cfg.home_lat_deg
         lat = lat0 + math.degrees(x / EARTH_RADIUS_M)
         lon = self.cfg.home_lon_deg + math.degrees(y / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
@@ -767,10 +919,16 @@ class MockVehicle:
         if kind == "global_position":
             return self._global_position()
         if kind == "home_position":
-            return HomePosition(self.cfg.home_lat_deg, self.cfg.home_lon_deg, self.cfg.home_alt_amsl_m)
+            if self.cfg.origin is None:
+                return HomePosition(self.cfg.home_lat_deg, self.cfg.home_lon_deg, self.cfg.home_alt_amsl_m)
+            return HomePosition(*self.home)
         if kind == "sys_status":
             return SysStatus(load_permille=100, voltage_battery_v=16.2, battery_remaining_pct=100)
         if kind == "extended_sys_state":
+            if self.cfg.start_on_ground:
+                landed = (MavLandedState.ON_GROUND if self.landed else MavLandedState.TAKEOFF if self.mode == PX4_TAKEOFF
+                          else MavLandedState.LANDING if self.mode == PX4_LAND else MavLandedState.IN_AIR)
+                return ExtendedSysState(0, int(landed))
             landed = MavLandedState.IN_AIR if self.armed else MavLandedState.ON_GROUND
             if self.mode == PX4_LAND and self.armed:
                 landed = MavLandedState.LANDING
@@ -781,6 +939,8 @@ class MockVehicle:
         return [self._local_position(), self._attitude(), self._global_position()]
 
     def _message_by_id(self, msg_id: int) -> Message | None:
+        if msg_id == _ID["GPS_GLOBAL_ORIGIN"]:
+            return self._origin_msg()
         if msg_id == _ID["AUTOPILOT_VERSION"]:
             return AutopilotVersion(CAPABILITIES, flight_sw_version=(1 << 24) | (14 << 16), uid=self.sysid)
         kind = TELEMETRY_IDS.get(msg_id)

@@ -24,6 +24,7 @@ from mavlink_bridge import (
     GlobalPositionInt,
     Heartbeat,
     HeartbeatTimeout,
+    GpsGlobalOrigin,
     HomePosition,
     LocalPositionNed,
     MavlinkPort,
@@ -37,6 +38,7 @@ from mavlink_bridge import (
     UnknownMessage,
     VehicleLink,
     acceleration_setpoint,
+    altitude_hold_setpoint,
     parse_connection_string,
     read_tlog,
 )
@@ -73,6 +75,9 @@ def test_px4_custom_modes_match_spec():
         ParamValue("COM_OF_LOSS_T", 1.5, 9, 10, 0),
         StatusText(4, "Failsafe"),
         HomePosition(47.5, 8.5, 488.0),
+        HomePosition(47.5, 8.5, 488.0, 1.5, -2.0, 0.0),
+        GpsGlobalOrigin(47.25, 8.5, 501.5, 1234567),
+        altitude_hold_setpoint(3, 1, (0.5, -0.25), -20.0, 4000),
     ],
 )
 def test_codec_round_trip(msg):

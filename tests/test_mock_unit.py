@@ -85,23 +85,30 @@ def test_px4_setpoint_filter_accepts_broadcast_body_ned_and_nan_in_ignored_field
     assert check_setpoint(sp, 3, 1) is None  # x is ignored by mask 3135
 
 
-def test_offboard_gate_needs_more_than_one_second_at_2_hz():
+def test_offboard_gate_is_px4s_timeout_one_recent_setpoint_is_enough():
+    """PX4 (commander/HealthAndArmingChecks/checks/offboardCheck.cpp): OFFBOARD needs an offboard setpoint
+    within COM_OF_LOSS_T, not a stream of some duration: MAVSDK's set_acceleration_ned() then start()."""
     v, clock, sent = make()
     v.handle(cmd(400, 1))
-    stream(v, clock, 0.9)
-    v.handle(cmd(176, 1 | 128, 6))
+    v.handle(cmd(176, 1 | 128, 6))                      # no setpoint yet
     assert acks(sent)[-1].result == MavResult.TEMPORARILY_REJECTED and v.mode == PX4_HOLD
-    stream(v, clock, 0.3)
-    v.handle(cmd(176, 1 | 128, 6))
+    v.handle(rx(acceleration_setpoint(1, 1, (0.5, 0.0, 0.0), 0)))
+    v.handle(cmd(176, 1 | 128, 6))                      # at once
     assert acks(sent)[-1].result == MavResult.ACCEPTED and v.mode == PX4_OFFBOARD
     assert acks(sent)[-1].target_system == 1 and acks(sent)[-1].target_component == 195  # to the sender
 
 
-def test_slow_stream_does_not_open_the_gate():
-    v, clock, sent = make()
-    stream(v, clock, 3.0, rate_hz=1.5)  # below 2 Hz
+def test_offboard_gate_refuses_a_setpoint_older_than_com_of_loss_t():
+    v, clock, sent = make(com_of_loss_t_s=1.0)
+    v.handle(cmd(400, 1))
+    v.handle(rx(acceleration_setpoint(1, 1, (0.5, 0.0, 0.0), 0)))
+    clock.t += 1.1
+    v.tick()
     v.handle(cmd(176, 1, 6))
-    assert acks(sent)[-1].result == MavResult.TEMPORARILY_REJECTED
+    assert acks(sent)[-1].result == MavResult.TEMPORARILY_REJECTED and v.mode == PX4_HOLD
+    stream(v, clock, 3.0, rate_hz=1.5)                  # a slow stream is still fresh enough at the moment of the request
+    v.handle(cmd(176, 1, 6))
+    assert acks(sent)[-1].result == MavResult.ACCEPTED
 
 
 def test_failsafe_after_com_of_loss_t_and_hold_keeps_position():
