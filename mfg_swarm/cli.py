@@ -16,6 +16,10 @@ __all__ = ["main", "build_parser"]
 
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default="paper", help="mission scenario (default: paper)")
+    p.add_argument("--mission", type=Path, default=None, metavar="FILE",
+                   help="a field mission (docs/mission.md, e.g. examples/field.json) instead of --scenario and --n: "
+                        "`run` starts every vehicle on the ground at its launch point with its own EKF origin, takes off, "
+                        "flies, then holds or lands; `sim` flies the same mission in the swarm frame, airborne")
     p.add_argument("--n", type=int, default=25, help="number of UAVs N (default: 25)")
     p.add_argument("--mode", choices=MODES, default="mfg",
                    help="mfg: MFG learning control (Alg. 4); hjb: HJB_d learning control (Alg. 3); *-pde: the solved controllers (Alg. 2 / 1) (default: mfg)")
@@ -112,12 +116,27 @@ def _range_from(args) -> float | None:
     return args.range_m
 
 
+def _mission(args):
+    """The --mission file, validated (MissionError, a ValueError naming the field: before anything moves)."""
+    if getattr(args, "mission", None) is None:
+        return None
+    from mfg_autopilot.mission import load_mission
+
+    return load_mission(args.mission)
+
+
+def _scenario(args):
+    from .scenarios import make_scenario, scenario_from_mission
+
+    mission = _mission(args)
+    return scenario_from_mission(mission) if mission is not None else make_scenario(args.scenario, args.n)
+
+
 def _cmd_sim(args) -> int:
     from .results import write_json_atomic, write_npz_atomic
-    from .scenarios import make_scenario
     from .sim import GustParams, SimConfig, simulate
 
-    cfg = SimConfig(scenario=make_scenario(args.scenario, args.n), mode=args.mode, preset=preset_by_name(args.preset),
+    cfg = SimConfig(scenario=_scenario(args), mode=args.mode, preset=preset_by_name(args.preset),
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
                     fail_vehicle=args.fail_vehicle, fail_at_s=args.fail_at, gust=GustParams() if args.gust else None)
     traj, metrics = simulate(cfg, progress=False if args.no_progress else None)
@@ -133,10 +152,14 @@ def _cmd_sim(args) -> int:
 
 def _cmd_run(args) -> int:
     from .launcher import LaunchError, RunConfig, run_swarm
-    from .scenarios import make_scenario
 
     out = args.out or Path("runs") / f"{args.scenario}-{args.mode}-n{args.n}-seed{args.seed}"
-    cfg = RunConfig(scenario=make_scenario(args.scenario, args.n), mode=args.mode, preset_name=args.preset, out=out,
+    mission = _mission(args)
+    if mission is not None:
+        out = args.out or Path("runs") / f"mission-{mission.name or 'mission'}-{args.mode}-seed{args.seed}"
+        args.n = mission.n
+    cfg = RunConfig(scenario=_scenario(args), mode=args.mode, preset_name=args.preset, out=out, mission=mission,
+                    mission_file=None if args.mission is None else args.mission.resolve(),
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), lockstep=args.lockstep,
                     zenoh_router=args.zenoh_router, mavlink_base_port=args.mavlink_base_port,
                     gcs_url="udpout:127.0.0.1:14550" if args.gcs else "none", time_limit_s=args.time_limit_s,

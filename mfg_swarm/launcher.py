@@ -97,6 +97,8 @@ class RunConfig:
     zenoh_router_config: str | None = None    # router json5 (e.g. with access control, docs/security.md)
     zenoh_client_config: str | None = None    # controllers' json5; "{i}" is replaced by the vehicle id
     python: str = field(default_factory=lambda: sys.executable)
+    mission: object | None = None             # a field mission (mfg_autopilot.mission.Mission); scenario = its swarm frame
+    mission_file: Path | None = None          # ... and its file, handed to every controller
 
 
 def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200) -> tuple[list[int], list[int]]:
@@ -458,16 +460,23 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         for i in range(n):
             x, y = (float(v) for v in sc.initial_pos_m[i])
             argv = [py, "-m", "mock_vehicle.cli", "--instance", str(i), "--onboard-url", f"udpout:127.0.0.1:{mav_ports[i]}",
-                    "--gcs-url", cfg.gcs_url, "--initial-pos-m", f"{x!r},{y!r}", "--seed", str(cfg.seed),
+                    "--gcs-url", cfg.gcs_url, f"--initial-pos-m={x!r},{y!r}", "--seed", str(cfg.seed),
                     "--c0", repr(float(wind.c0_per_s)), "--mean-wind", ",".join(repr(float(v)) for v in wind.mean_wind_m_s),
                     "--wind-diffusion", ",".join(repr(float(v)) for row in wind.wind_diffusion_m_s for v in row),
                     "--acc-limit-m-s2", repr(float(preset.learner.acc_max_m_s2)), "--physics-dt-s", repr(float(cfg.physics_dt_s)),
                     "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
+            if cfg.mission is not None:
+                # a real field: the world's frame is the mission's datum; each vehicle boots on the ground at its
+                # launch point, its EKF origin there (so two vehicles' LOCAL_NED are not comparable)
+                d, o = cfg.mission.datum, cfg.mission.launch_geodetic(i + 1)
+                argv += ["--start", "ground", f"--origin={o.lat_deg!r},{o.lon_deg!r},{o.alt_amsl_m!r}",
+                         "--home-lat", repr(d.lat_deg), "--home-lon", repr(d.lon_deg), "--home-alt-m", repr(d.alt_amsl_m)]
             if world_port is not None:
-                argv += ["--world-url", f"udp:127.0.0.1:{world_port}",
-                         "--home-lat", repr(DEFAULT_HOME_DEG[0]), "--home-lon", repr(DEFAULT_HOME_DEG[1])]
+                argv += ["--world-url", f"udp:127.0.0.1:{world_port}"]
+                if cfg.mission is None:
+                    argv += ["--home-lat", repr(DEFAULT_HOME_DEG[0]), "--home-lon", repr(DEFAULT_HOME_DEG[1])]
             if cfg.mavlink_key_file:
                 argv += ["--signing-key", str(cfg.mavlink_key_file)]
             vehicles.append(_Child(f"vehicle{i}", argv, out / "stderr" / f"vehicle{i}.log", env))
@@ -475,7 +484,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         for i in range(n):
             argv = [py, "-m", "mfg_autopilot.runtime.cli", "--instance", str(i), "--connect", f"udpin:127.0.0.1:{mav_ports[i]}",
                     "--mode", cfg.mode, "--preset", cfg.preset_name, "--n", str(n), "--swarm", cfg.swarm or f"run{os.getpid()}",
-                    "--mission", str(out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
+                    "--mission", str(cfg.mission_file or out / "mission.json"), "--steps", str(cfg.steps), "--log", str(ctrl_logs[i]),
                     "--state-dir", str(out / "controllers" / f"state{i}"),
                     "--log-level", "WARNING", "--exchange-timeout-s", repr(float(startup_s)),
                     # every start-up wait gets the start-up budget: with 2N processes starting on a
@@ -570,6 +579,17 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     return out, metrics
 
 
+def _to_swarm_frame(track, mission, system_id: int):
+    """A vehicle's telemetry from its own LOCAL_NED (origin: its launch point) into the mission's swarm frame,
+    through WGS84 (mfg_autopilot.mission.frames), as its controller sees it."""
+    import dataclasses
+
+    vf = mission.frame.vehicle(mission.launch_geodetic(system_id))
+    state = vf.state_local_to_swarm(track.state) if len(track.state) else track.state
+    acc = vf.vector_to_swarm(np.column_stack([track.sp_acc, np.zeros(len(track.sp_acc))]))[:, 0:2] if len(track.sp_acc) else track.sp_acc
+    return dataclasses.replace(track, state=state, sp_acc=acc)
+
+
 def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[Trajectories, dict]:
     """Trajectories from the vehicles' tlogs; counts from the controllers' logs."""
     T = cfg.steps
@@ -578,6 +598,8 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     states = np.full((T + 1, n, 4), np.nan)
     acc = np.full((T, n, 2), np.nan)
     tracks = [read_vehicle_tlog(out / "vehicles" / f"vehicle{i}.tlog", i + 1) for i in range(n)]
+    if cfg.mission is not None:
+        tracks = [_to_swarm_frame(tr, cfg.mission, i + 1) for i, tr in enumerate(tracks)]
     logs = [read_controller_log(out / "controllers" / f"controller{i}.jsonl") for i in range(n)]
     if cfg.lockstep:
         for i, tr in enumerate(tracks):

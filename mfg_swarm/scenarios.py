@@ -25,6 +25,7 @@ class Scenario:
     initial_pos_m: np.ndarray      # (N, 2)
     destination_m: np.ndarray      # (N, 2) each UAV's destination
     group: np.ndarray              # (N,) group index (0 for single-group scenarios)
+    initial_vel_m_s: np.ndarray | None = None   # (N, 2); None: drawn from the wind (the paper's start, airborne)
 
     @property
     def n(self) -> int:
@@ -65,6 +66,16 @@ def _crossing(n: int, spacing_m: float = np.sqrt(2.0)) -> Scenario:
 
 
 SCENARIOS = {"paper": _paper, "crossing": _crossing, "dense": _dense}
+
+
+def scenario_from_mission(mission) -> Scenario:
+    """A field mission (``mfg_autopilot.mission.Mission``) as a scenario in its swarm frame: every vehicle (in
+    system-id order) from its launch position to its group's site, at the cruise altitude (the
+    simulator flies the horizontal part only: no takeoff, no landing)."""
+    a = mission.arrays()
+    # at rest: a vehicle of a field mission starts from a hover at its altitude after its takeoff
+    return Scenario(f"mission:{mission.name or 'mission'}", a["launch_ne_m"], a["site_ne_m"], a["group"],
+                    initial_vel_m_s=np.zeros_like(a["launch_ne_m"]))
 
 
 def make_scenario(name: str, n: int) -> Scenario:

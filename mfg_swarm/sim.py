@@ -200,7 +200,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     t_wall = time.perf_counter()
     sc, preset = cfg.scenario, cfg.preset
     n, T, dt = sc.n, cfg.steps, preset.dt_s
-    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset, cfg.physics_dt_s), cfg.seed)
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset, cfg.physics_dt_s), cfg.seed,
+                       initial_vel_m_s=getattr(sc, "initial_vel_m_s", None))
     f32 = as_f32 if cfg.link_float32 else (lambda x: np.asarray(x, dtype=float))
 
     pos = np.empty((T + 1, n, 2)); vel = np.empty((T + 1, n, 2)); acc_log = np.empty((T, n, 2))

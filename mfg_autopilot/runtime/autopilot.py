@@ -8,6 +8,17 @@ Sequence (issue 4): wait for the vehicle's heartbeat and first position -> join 
 (MFG: the t = 0 exchange; HJB_d: wait until all N are present) -> stream setpoints, arm,
 OFFBOARD -> control loop -> HOLD on the way out (mission over, arrived, signal, error).
 
+With a field mission (``AutopilotConfig.mission``, issue 19; docs/mission.md): wait for the
+vehicle's EKF origin (GPS_GLOBAL_ORIGIN, requested, the wait logged) -> if on the ground: arm,
+MAV_CMD_NAV_TAKEOFF to the group's altitude, wait until there -> join the swarm with swarm-frame
+states -> stream altitude-hold setpoints (type_mask 3387: the group's altitude, the controller's
+ax, ay) -> OFFBOARD -> control loop -> the mission's end state (``on_arrival``: hold, or land and
+wait for the vehicle to disarm). Every position is converted from the vehicle's own LOCAL_NED to
+the swarm frame (``mission.frames``) before the controller sees it, every acceleration back to
+the vehicle's axes; nothing assumes that two vehicles share an origin. A failure on the way
+(arming denied, takeoff timeout, offboard refused, link lost) is a log line and a safe end state:
+hold in the air, land if the mission says so, nothing commanded on the ground.
+
 Clocks:
 - lockstep: one control step per simulated dt. The vehicle's LOCAL_POSITION_NED stamped
   t_k gives the state; the setpoint for that step is stamped t_k (docs/lockstep.md), and the
@@ -35,15 +46,19 @@ import numpy as np
 
 from mavlink_bridge import (
     BridgeError,
+    ExtendedSysState,
+    Heartbeat,
     HeartbeatTimeout,
     HomePosition,
     LocalPositionNed,
+    MavLandedState,
     TelemetryTimeout,
     VehicleLink,
     load_signing_key,
 )
 from mavlink_bridge.adsb import adsb_states
 from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.mission import GeodeticPoint, VehicleFrame
 from mfg_autopilot.presets import make_controller, preset_by_name
 from mfg_autopilot.runtime.config import AutopilotConfig, AutopilotError
 from mfg_autopilot.runtime.controller_log import ControllerLog
@@ -84,6 +99,67 @@ class Autopilot:
         self._traffic_sensor: bool | None = None    # proximity sensor on the vehicle (decided at the first step)
         self._last_checkpoint_monotonic_s = -math.inf
         self._home: HomePosition | None = None
+        self.frame: VehicleFrame | None = None        # the vehicle's LOCAL_NED against the swarm frame (a mission)
+        self.z_sp_local_m: float | None = None        # the altitude setpoint (LOCAL_NED z) with a mission
+
+    # ---------------------------------------------------------------- frames
+    def swarm_state(self, p: LocalPositionNed) -> np.ndarray:
+        """The paper state [x, y, vx, vy] of a LOCAL_POSITION_NED in the swarm frame (the vehicle's own
+        local frame without a mission: every vehicle then shares one origin, the simulator's case)."""
+        s = _state_of(p)
+        return s if self.frame is None else self.frame.state_local_to_swarm(s, p.z_m)
+
+    def _setpoint(self, acc_swarm: np.ndarray) -> tuple[float, float, float]:
+        """The controller's action (swarm axes) as the vehicle's acceleration setpoint (its own axes)."""
+        if self.frame is None:
+            return (float(acc_swarm[0]), float(acc_swarm[1]), 0.0)
+        a = self.frame.acc_swarm_to_local(np.asarray(acc_swarm, dtype=float))
+        return (float(a[0]), float(a[1]), 0.0)
+
+    # ---------------------------------------------------------------- a field mission's start
+    def find_frame(self) -> None:
+        """Wait for the vehicle's EKF origin and place its LOCAL_NED in the swarm frame."""
+        cfg, m = self.cfg, self.cfg.mission
+        self.clog.event("waiting_for_origin", note="GPS_GLOBAL_ORIGIN: the vehicle's LOCAL_NED is relative to it")
+        origin = _interruptible(lambda s: self.link.wait_origin(s), cfg.origin_timeout_s, self.stop, TelemetryTimeout,
+                                lambda: AutopilotError(f"no GPS_GLOBAL_ORIGIN from vehicle {cfg.system_id} within "
+                                                       f"{cfg.origin_timeout_s} s: has its EKF a position (GPS fix)?"), slice_s=2.0)
+        if origin is None:
+            raise _Stopped()
+        self.frame = m.frame.vehicle(GeodeticPoint(origin.lat_deg, origin.lon_deg, origin.alt_amsl_m))
+        d = self.frame.origin_ned_m
+        self.clog.event("origin", lat_deg=origin.lat_deg, lon_deg=origin.lon_deg, alt_amsl_m=origin.alt_amsl_m,
+                        offset_ned_m=[round(float(v), 3) for v in d])
+        # the group's cruise altitude above the field (the datum's altitude) as this vehicle's local z
+        alt_amsl = m.datum.alt_amsl_m + m.altitude_agl_m(cfg.system_id)
+        self.z_sp_local_m = float(origin.alt_amsl_m - alt_amsl)
+
+    def lift_off(self) -> LocalPositionNed:
+        """On the ground: arm, take off to the group's altitude and wait until there (AUTO.LOITER).
+        Returns the position at altitude. Already in the air (a restart): nothing to do."""
+        cfg = self.cfg
+        p = self.link.wait_local_position(None, cfg.vehicle_timeout_s)
+        target = self.z_sp_local_m
+        if p.z_m < target + 1.0:                       # within a metre of the altitude or above it: airborne
+            self.clog.event("airborne", z_m=p.z_m)
+            return p
+        self.link.arm(cfg.command_timeout_s)
+        self.clog.event("armed")
+        alt_amsl = self.frame.origin.alt_amsl_m - target
+        self.link.takeoff(alt_amsl, cfg.command_timeout_s)
+        self.clog.event("takeoff", altitude_amsl_m=alt_amsl, z_m=target)
+        deadline = time.monotonic() + cfg.takeoff_timeout_s
+        while True:
+            if self.stop.is_set():
+                raise _Stopped()
+            p = self.link.wait_local_position(None, cfg.vehicle_timeout_s)
+            if p.z_m <= target + 0.3 and p.time_boot_ms >= 0:
+                self.clog.event("at_altitude", z_m=p.z_m)
+                return p
+            if time.monotonic() > deadline:
+                raise AutopilotError(f"vehicle {cfg.system_id} did not reach {-target:.1f} m above its origin within "
+                                     f"{cfg.takeoff_timeout_s} s of takeoff (at {-p.z_m:.1f} m)")
+            self.stop.wait(0.2)
 
     # ---------------------------------------------------------------- phases
     def join_swarm(self, s0: np.ndarray) -> int:
@@ -106,11 +182,15 @@ class Autopilot:
         """Stream setpoints, arm, enter OFFBOARD (typed errors from the bridge say what failed)."""
         cfg = self.cfg
         stamp = LOCKSTEP_PRESTREAM_TIME_BOOT_MS if cfg.lockstep else None
-        self.link.set_held_setpoint((0.0, 0.0, 0.0), stamp)
+        self.link.set_held_setpoint((0.0, 0.0, 0.0), stamp, z_m=self.z_sp_local_m)
         self.link.start_setpoint_stream(cfg.setpoint_rate_hz)
-        time.sleep(1.2)                          # PX4: >= 2 Hz for > 1 s before OFFBOARD
-        self.link.arm(cfg.command_timeout_s)
-        self.clog.event("armed")
+        # PX4 needs only an offboard setpoint within COM_OF_LOSS_T; its docs ask for > 2 Hz for a
+        # while first, and older firmware (and a loaded link) is happier with a second of it
+        time.sleep(1.2)
+        hb = self.link.latest_heartbeat()
+        if hb is None or not hb.armed:                  # a field mission armed before its takeoff
+            self.link.arm(cfg.command_timeout_s)
+            self.clog.event("armed")
         self.link.start_offboard(cfg.command_timeout_s)
         self.clog.event("offboard")
         if cfg.lockstep:
@@ -143,6 +223,11 @@ class Autopilot:
                             note=None if self._traffic_sensor else f"no traffic from the vehicle within {cfg.traffic_probe_s} s: backstop inactive")
         if not self._traffic_sensor:
             return None
+        if self._home is None and cfg.mission is not None:
+            # traffic is placed around the mission's datum: the swarm frame (ADSB_VEHICLE is WGS84; the
+            # datum's flat-earth scaling is within a few cm of the tangent plane over a km)
+            d = cfg.mission.datum
+            self._home = HomePosition(d.lat_deg, d.lon_deg, d.alt_amsl_m)
         if self._home is None:
             self._home = self.link.wait_for(HomePosition, lambda h: True, cfg.vehicle_timeout_s)
             if self._home is None:
@@ -216,21 +301,21 @@ class Autopilot:
             k = t_ms // self.dt_ms                  # the step index is the vehicle's simulated time
             if k >= cfg.steps:
                 if self.gossips:                    # nobody leaves while another waits for its last state
-                    late = self.exchange.finish_lockstep(k, t_ms / 1000.0, _state_of(p), timeout_s=cfg.gossip_timeout_s)
+                    late = self.exchange.finish_lockstep(k, t_ms / 1000.0, self.swarm_state(p), timeout_s=cfg.gossip_timeout_s)
                     if late:
                         self.clog.event("finish_wait_timeout", vehicles=sorted(late))
                 return "mission_time"
-            state = _state_of(p)
+            state = self.swarm_state(p)
             obs = self._observe(k, state, t_ms / 1000.0)
             clock.mark()
             info = self._act(obs)
             clock.mark()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
-            sp = (float(acc[0]), float(acc[1]), 0.0)
+            sp = self._setpoint(acc)
             # the setpoint goes on the wire first: the vehicle (and the world barrier behind it)
             # steps while this process finishes the step, writes its log line and checkpoint
             deadline = time.monotonic() + self.cfg.step_timeout_s
-            self.link.send_acc_setpoint(sp, t_ms)
+            self.link.send_acc_setpoint(sp, t_ms, z_m=self.z_sp_local_m)
             clock.mark()
             self._finish()
             clock.mark()
@@ -255,7 +340,7 @@ class Autopilot:
                 if time.monotonic() >= deadline or self.stop.is_set():
                     raise AutopilotError(f"vehicle {self.cfg.system_id} did not advance past t = {t_ms} ms within "
                                          f"{self.cfg.step_timeout_s} s of lockstep setpoints; is it still in OFFBOARD?") from None
-            self.link.send_acc_setpoint(sp, t_ms)
+            self.link.send_acc_setpoint(sp, t_ms, z_m=self.z_sp_local_m)
 
     def run_realtime(self) -> str:
         """Control steps on the mission clock: step k at mission start + k dt (wall time), so
@@ -304,7 +389,7 @@ class Autopilot:
                 self._resume_offboard()
             t_woken = time.monotonic()
             clock.start()
-            state = _state_of(p)
+            state = self.swarm_state(p)
             last_k = k
             obs = self._observe(k, state, p.time_boot_ms / 1000.0)
             clock.mark()
@@ -312,10 +397,10 @@ class Autopilot:
             clock.mark()
             t_computed = time.monotonic()
             acc = np.asarray(info.acc_m_s2[0], dtype=float)
-            sp = (float(acc[0]), float(acc[1]), 0.0)
-            sent_monotonic_s = self.link.send_acc_setpoint(sp)
+            sp = self._setpoint(acc)
+            sent_monotonic_s = self.link.send_acc_setpoint(sp, z_m=self.z_sp_local_m)
             clock.mark()
-            self.link.set_held_setpoint(sp)
+            self.link.set_held_setpoint(sp, z_m=self.z_sp_local_m)
             self._finish()
             clock.mark()
             # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
@@ -451,10 +536,12 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     """Run one vehicle's controller to the end of its mission. Returns a process exit code."""
     stop = stop or threading.Event()
     clog = ControllerLog(cfg.log_path)
-    clog.write({"type": "start", "wall_s": time.time(), "config": {k: (v if not isinstance(v, ZenohSettings) else vars(v))
-                                                                     for k, v in vars(cfg).items()}})
+    clog.write({"type": "start", "wall_s": time.time(),
+                "config": {k: (vars(v) if isinstance(v, ZenohSettings) else (v.name or "mission") if k == "mission" and v is not None
+                               else v) for k, v in vars(cfg).items()}})
     link = None
     reason = "error"
+    ap = None
     gc_clock = GcClock().install()
     try:
         key = None if cfg.mavlink_key_file is None else load_signing_key(cfg.mavlink_key_file)
@@ -471,8 +558,11 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
                                 lambda: TelemetryTimeout("LOCAL_POSITION_NED", cfg.system_id, cfg.vehicle_timeout_s))
             if p0 is None:
                 raise _Stopped()
-            s0 = _state_of(p0)
             ap = Autopilot(cfg, link, exchange, clog, stop, gc_clock)
+            if cfg.mission is not None:
+                ap.find_frame()
+                p0 = ap.lift_off()
+            s0 = ap.swarm_state(p0)
             try:
                 n_t0 = ap.n_t0 if ap.try_resume() else ap.join_swarm(s0)
             except ExchangeStopped:
@@ -511,14 +601,41 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
     finally:
         if link is not None:
             try:
-                if link.latest_heartbeat() is not None:        # a vehicle never heard of is not commanded
-                    link.hold(cfg.command_timeout_s if reason != "error" else 3.0)
-                    clog.event("hold", reason=reason)
+                _end_state(cfg, link, clog, reason)
             except BridgeError as exc:
                 clog.event("hold_failed", error=str(exc))
             link.close()
         gc_clock.remove()
         clog.close()
+
+
+def _end_state(cfg: AutopilotConfig, link: VehicleLink, clog: ControllerLog, reason: str) -> None:
+    """The vehicle's safe end state: nothing for a vehicle never heard of, or disarmed on the ground;
+    a mission that ends in ``land`` (and finished: mission time or arrival) lands and waits for the
+    disarm; everything else holds (PX4 Hold: brake and keep position and altitude)."""
+    hb = link.latest_heartbeat()
+    if hb is None:
+        return                                              # a vehicle never heard of is not commanded
+    if cfg.mission is not None and not hb.armed:
+        clog.event("on_ground", reason=reason)
+        return
+    ext = link.latest(ExtendedSysState)
+    if cfg.mission is not None and ext is not None and ext.landed_state == MavLandedState.ON_GROUND:
+        link.disarm(cfg.command_timeout_s)             # armed but never left the ground (e.g. takeoff failed)
+        clog.event("disarmed_on_ground", reason=reason)
+        return
+    if cfg.mission is not None and cfg.mission.on_arrival == "land" and reason in ("mission_time", "arrived"):
+        link.stop_setpoint_stream()
+        link.land(cfg.command_timeout_s)
+        clog.event("land", reason=reason)
+        got = link.wait_for(Heartbeat, lambda h: not h.armed, cfg.land_timeout_s)
+        if got is None:
+            clog.event("land_timeout", note=f"not disarmed within {cfg.land_timeout_s} s of the land command")
+        else:
+            clog.event("landed", disarmed=True)
+        return
+    link.hold(cfg.command_timeout_s if reason != "error" else 3.0)
+    clog.event("hold", reason=reason)
 
 
 class _Stopped(Exception):

@@ -15,6 +15,7 @@ import signal
 import sys
 import threading
 
+from mfg_autopilot.mission import load_mission
 from mfg_autopilot.paper.params import radio_range_m
 from mfg_autopilot.presets import DEFAULT_PRESET_NAME, MODES
 from mfg_autopilot.runtime.autopilot import AutopilotConfig, run_autopilot
@@ -35,8 +36,11 @@ def build_parser() -> argparse.ArgumentParser:
     rng = p.add_mutually_exclusive_group()
     rng.add_argument("--range-m", type=float, default=None, help="HJB_d radio range d, m")
     rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P, mW (d from the path-loss model)")
-    p.add_argument("--mission", default=None, help="mission JSON: {\"sites_m\": [[x, y], ...]} one destination site per "
-                                                   "vehicle id (default: every vehicle to the origin)")
+    p.add_argument("--mission", default=None, metavar="FILE",
+                   help="a field mission (docs/mission.md: geodetic, every vehicle by system id; the controller then waits "
+                        "for the vehicle's EKF origin, arms, takes off to its group's altitude, flies, and holds or lands), or "
+                        "the simulator's {\"sites_m\": [[x, y], ...]} (one site per vehicle id, a shared origin, airborne "
+                        "vehicles); default: every vehicle to the origin")
     p.add_argument("--lockstep", action="store_true", help="one control step per simulated dt (docs/lockstep.md)")
     p.add_argument("--steps", type=int, default=200, help="mission time limit in control steps (default: 200)")
     p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
@@ -66,16 +70,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
-    sites = None
+    sites, mission = None, None
     if args.mission:
         try:
             with open(args.mission, encoding="utf-8") as fh:
-                mission = json.load(fh)
-            sites = tuple((float(x), float(y)) for x, y in mission["sites_m"])
+                doc = json.load(fh)
         except FileNotFoundError:
             raise ValueError(f"mission file {args.mission!r} not found") from None
-        except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
-            raise ValueError(f"mission file {args.mission!r} is not {{\"sites_m\": [[x, y], ...]}}: {exc}") from None
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"mission file {args.mission!r} is not JSON: {exc}") from None
+        if isinstance(doc, dict) and "sites_m" in doc:
+            try:
+                sites = tuple((float(x), float(y)) for x, y in doc["sites_m"])
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"mission file {args.mission!r} is not {{\"sites_m\": [[x, y], ...]}}: {exc}") from None
+        else:
+            mission = load_mission(doc)                    # MissionError (a ValueError) names the field
     range_m = radio_range_m(args.power_mw) if args.power_mw is not None else args.range_m
     hold = None if args.hold_on_arrival is None else args.hold_on_arrival == "on"
     return AutopilotConfig(
@@ -85,7 +95,7 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
         gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
         vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key, rt_priority=args.rt_priority,
-        log_fpk_weights_every=args.log_fpk_weights_every)
+        log_fpk_weights_every=args.log_fpk_weights_every, mission=mission)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mfg_autopilot.mission import Mission
 from mfg_autopilot.presets import DEFAULT_PRESET_NAME
 from mfg_autopilot.runtime.zenoh_config import ZenohSettings
 
@@ -56,6 +57,10 @@ class AutopilotConfig:
     checkpoint_interval_s: float = 1.0        # wall time between checkpoints (0: every step)
     rt_priority: int | None = None            # SCHED_FIFO priority of the controller's threads (None: normal scheduling)
     log_fpk_weights_every: int = 10           # w_F in the step record every this many steps and at the last (0: never)
+    mission: Mission | None = None            # a field mission (docs/mission.md): swarm frame, takeoff, landing
+    origin_timeout_s: float = 60.0            # wait this long for the vehicle's EKF origin (GPS_GLOBAL_ORIGIN)
+    takeoff_timeout_s: float = 120.0          # ... and for the climb to the group's altitude
+    land_timeout_s: float = 120.0             # ... and for touchdown and disarm after the mission
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -72,10 +77,20 @@ class AutopilotConfig:
             check_rt_priority(self.rt_priority)
         if self.log_fpk_weights_every < 0:
             raise ValueError(f"--log-fpk-weights-every must be >= 0, got {self.log_fpk_weights_every}")
+        if self.mission is not None:
+            if self.sites_m is not None:
+                raise ValueError("give the destinations either as a mission or as sites, not both")
+            self.mission.require_system_id(self.system_id)
+            if self.mission.system_ids != tuple(range(1, self.n + 1)):
+                raise ValueError(f"the mission's system ids must be 1..N = 1..{self.n} (instance = system id - 1), got "
+                                 f"{len(self.mission.system_ids)} ids from {min(self.mission.system_ids)} to {max(self.mission.system_ids)}")
 
     @property
     def system_id(self) -> int:
         return self.instance + 1
 
     def sites_array(self) -> np.ndarray:
+        """Every vehicle's destination site (N, 2), in the swarm frame when there is a mission."""
+        if self.mission is not None:
+            return self.mission.arrays()["site_ne_m"]
         return np.zeros((self.n, 2)) if self.sites_m is None else np.asarray(self.sites_m, dtype=float)
