@@ -15,7 +15,13 @@ __all__ = ["main", "build_parser"]
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default="paper", help="mission scenario (default: paper)")
+    p.add_argument("--scenario", default="paper",
+                   help="paper | crossing | dense | swap4 (four streams through the middle) | circle (each to its antipode) | "
+                        "merge (k sources to one site) | random (random starts and shared sites); seeded by --seed "
+                        "(mfg_swarm/scenarios.py; default: paper)")
+    p.add_argument("--safety-radius-m", type=float, default=None,
+                   help="the airframe's safety radius: a scenario whose starts or slots are closer than twice it is refused "
+                        "(default: 0.05 m, half the 0.1 m collision distance; a mission file has its own)")
     p.add_argument("--mission", type=Path, default=None, metavar="FILE",
                    help="a field mission (docs/mission.md, e.g. examples/field.json) instead of --scenario and --n: "
                         "`run` starts every vehicle on the ground at its launch point with its own EKF origin, takes off, "
@@ -126,10 +132,16 @@ def _mission(args):
 
 
 def _scenario(args):
-    from .scenarios import make_scenario, scenario_from_mission
+    from .scenarios import DEFAULT_SAFETY_RADIUS_M, check_flyable, make_scenario, scenario_from_mission
 
     mission = _mission(args)
-    return scenario_from_mission(mission) if mission is not None else make_scenario(args.scenario, args.n)
+    if mission is not None:
+        sc = scenario_from_mission(mission)
+        check_flyable(sc, mission.safety_radius_m)
+        return sc
+    sc = make_scenario(args.scenario, args.n, args.seed)
+    check_flyable(sc, DEFAULT_SAFETY_RADIUS_M if args.safety_radius_m is None else args.safety_radius_m)
+    return sc
 
 
 def _cmd_sim(args) -> int:

@@ -651,4 +651,6 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
                               seed=cfg.seed, wall_s=wall_s, scenario=cfg.scenario.name, preset=preset.name)
     metrics["steps_requested"] = T
     metrics["backstop_activations"] = int(backstop.sum())
+    metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
+    metrics.update(start_spacing_m=cfg.scenario.min_start_spacing_m, slot_spacing_m=cfg.scenario.slot_spacing_m)
     return traj, metrics

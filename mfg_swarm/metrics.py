@@ -34,7 +34,8 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
 
     Returns {"collision_pairs": distinct pairs ever closer than radius,
     "collision_pair_steps": (pair, step) count, "min_pair_distance_m": the smallest
-    distance between any two UAVs over all segments, "pairs": sorted list of (i, j)}.
+    distance between any two UAVs over all segments, "closest_pair": (i, j, step) where it is
+    attained (step k: the segment from t_k to t_k+1), "pairs": sorted list of (i, j)}.
     Candidates per step: a pair can come within b during a step only if it starts within
     b + |delta_j - delta_i| <= b + e_i + e_j, delta_k the step's displacement of UAV k and
     e_k = |delta_k - c| (c: the median displacement) - a swarm flying together has small e_k
@@ -45,11 +46,14 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
     """
     T1, N, _ = pos_m.shape
     if N < 2:
-        return {"collision_pairs": 0, "collision_pair_steps": 0, "min_pair_distance_m": float("inf"), "pairs": []}
+        return {"collision_pairs": 0, "collision_pair_steps": 0, "min_pair_distance_m": float("inf"), "closest_pair": None,
+                "pairs": []}
     pairs_hit: set[tuple[int, int]] = set()
     pair_steps = 0
-    nn, _ = cKDTree(pos_m[0]).query(pos_m[0], k=2)
+    nn, nn_idx = cKDTree(pos_m[0]).query(pos_m[0], k=2)
     dmin = float(np.min(nn[:, 1]))          # attained at t = 0 (that pair is a candidate of the first step)
+    i0 = int(np.argmin(nn[:, 1]))
+    closest = (min(i0, int(nn_idx[i0, 1])), max(i0, int(nn_idx[i0, 1])), 0)
     for k in range(max(T1 - 1, 1)):
         p0 = pos_m[k]
         p1 = pos_m[k + 1] if T1 > 1 else p0
@@ -60,13 +64,17 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
         if cand.size == 0:
             continue
         dseg = segment_min_distance(p0[cand[:, 1]] - p0[cand[:, 0]], p1[cand[:, 1]] - p1[cand[:, 0]])
-        dmin = min(dmin, float(dseg.min()))
+        m = int(np.argmin(dseg))
+        if dseg[m] < dmin:
+            dmin = float(dseg[m])
+            a, b = int(cand[m, 0]), int(cand[m, 1])
+            closest = (min(a, b), max(a, b), k)
         hit = dseg < radius_m
         if np.any(hit):
             pair_steps += int(hit.sum())
             pairs_hit.update(map(tuple, np.sort(cand[hit], axis=1).tolist()))
     return {"collision_pairs": len(pairs_hit), "collision_pair_steps": pair_steps,
-            "min_pair_distance_m": dmin, "pairs": sorted(pairs_hit)}
+            "min_pair_distance_m": dmin, "closest_pair": closest, "pairs": sorted(pairs_hit)}
 
 
 def arrivals(pos_m: np.ndarray, dest_m: np.ndarray, dt_s: float, tol_m: float = ARRIVAL_TOLERANCE_M) -> tuple[np.ndarray, np.ndarray]:

@@ -92,6 +92,17 @@ def plot_run(run_dir: Path, n_snapshots: int = 4) -> list[Path]:
         ax.set_xlabel("y (east), m", fontsize=8)
         ax.tick_params(labelsize=7)
     axes[0].set_ylabel("x (north), m", fontsize=8)
+    cp = m.get("closest_pair")
+    if cp is not None:
+        # the closest pair of the flight: both tracks, and where they came closest, in the snapshot nearest that step
+        i, j, kc = (int(v) for v in cp)
+        ax = axes[int(np.argmin(np.abs(idx - kc)))]
+        for u in (i, j):
+            ax.plot(pos[:, u, 1], pos[:, u, 0], lw=0.9, color="C1", zorder=4)
+        mid = 0.5 * (pos[kc, i] + pos[kc, j])
+        ax.scatter([mid[1]], [mid[0]], marker="o", s=60, facecolors="none", edgecolors="C1", zorder=5,
+                   label=f"closest: {m.get('min_separation_m', float('nan')):.2f} m (UAVs {i}, {j}, t = {traj.t_s[kc]:.0f} s)")
+        ax.legend(fontsize=6, loc="lower left")
     if traj.w_H_ref is not None:
         ax = axes[-1]
         ax.plot(np.arange(traj.w_H_ref.shape[0]) * traj.dt_s, traj.w_H_ref, lw=0.6)

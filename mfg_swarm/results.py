@@ -20,7 +20,7 @@ from . import metrics as M
 __all__ = ["Trajectories", "compute_metrics", "write_json_atomic", "write_npz_atomic", "load_trajectories", "METRIC_KEYS"]
 
 METRIC_KEYS = ("n", "mode", "range_m", "seed", "steps", "collision_pairs", "collision_pair_steps",
-               "min_pair_distance_m", "arrived_fraction", "arrival_time_s", "comm_states_per_uav",
+               "min_pair_distance_m", "min_separation_m", "closest_pair", "arrived_fraction", "arrival_time_s", "comm_states_per_uav",
                "grad_evals_per_uav", "motion_energy_per_uav", "regularizer_activations", "wall_s")
 
 
@@ -73,6 +73,8 @@ def compute_metrics(traj: Trajectories, *, n: int, mode: str, range_m: float | N
         "collision_pairs": col["collision_pairs"],
         "collision_pair_steps": col["collision_pair_steps"],
         "min_pair_distance_m": _finite_or_none(col["min_pair_distance_m"]),
+        "min_separation_m": _finite_or_none(col["min_pair_distance_m"]),      # the same figure under issue 18's name
+        "closest_pair": None if col["closest_pair"] is None else list(col["closest_pair"]),
         "arrived_fraction": float(arrived.mean()),
         "arrival_time_s": _finite_or_none(float(np.max(t_arr))) if arrived.all() else None,
         "arrival_time_mean_s": _finite_or_none(float(np.nanmean(t_arr))) if arrived.any() else None,

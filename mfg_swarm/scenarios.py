@@ -5,6 +5,20 @@
 - ``crossing``: two groups (N/2 and N - N/2) on sqrt(2) m grids centred at (-60, 0) and
   (60, 0) m; each group's site is the other's centre, so they swap sides through each other.
 - ``dense``: the paper's scenario with grid spacing 0.5 m.
+- ``swap4``: four groups of about N/4 on sqrt(2) m grids at the compass points, each flying to the
+  opposite side: all four streams meet in the middle.
+- ``circle``: N vehicles on a circle (neighbours sqrt(2) m apart, so the radius grows with N), each
+  flying to its antipode (each vehicle its own group): the classic reciprocal-avoidance benchmark.
+- ``merge``: k sources (k = 2..6 from the seed) at distinct bearings, 80 m and more out, converging
+  on one site.
+- ``random``: random starts in a box (at least ``RANDOM_MIN_SPACING_M`` apart, Poisson-disc
+  rejection on a grid), 2..8 groups (from the seed) flying to 1..G-1 distinct random sites, so
+  several groups share a site.
+
+Every scenario states its minimum start spacing and slot spacing (the default controller's slot
+rule: slot = site + own start offset from the centroid of the vehicles sharing that site,
+``mfg_autopilot.guidance.planner.slots_from_sites``), and :func:`check_flyable` refuses one that
+cannot be flown with an airframe's safety radius.
 
 Positions are (x, y) = (north, east) in metres. ``destination_m`` is each UAV's mission
 *site* (shared by its group); the default controller derives each UAV's slot from it.
@@ -15,8 +29,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-__all__ = ["Scenario", "grid_positions", "make_scenario", "SCENARIOS"]
+from mfg_autopilot.guidance.planner import min_spacing_m, slots_from_sites
+
+__all__ = ["Scenario", "ScenarioError", "grid_positions", "make_scenario", "check_flyable", "SCENARIOS",
+           "DEFAULT_SAFETY_RADIUS_M", "RANDOM_MIN_SPACING_M"]
+
+DEFAULT_SAFETY_RADIUS_M = 0.05
+"""Half the collision distance (metrics.COLLISION_DISTANCE_M = 0.1 m): the airframe the paper's numbers assume."""
+RANDOM_MIN_SPACING_M = 1.5
+"""``random``: the smallest start distance it generates."""
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be generated, or cannot be flown safely."""
 
 
 @dataclass(frozen=True)
@@ -30,6 +57,19 @@ class Scenario:
     @property
     def n(self) -> int:
         return self.initial_pos_m.shape[0]
+
+    @property
+    def slots_m(self) -> np.ndarray:
+        """Every vehicle's slot under the default controller's rule, (N, 2)."""
+        return slots_from_sites(self.initial_pos_m, self.destination_m)
+
+    @property
+    def min_start_spacing_m(self) -> float:
+        return min_spacing_m(self.initial_pos_m)
+
+    @property
+    def slot_spacing_m(self) -> float:
+        return min_spacing_m(self.slots_m)
 
 
 def grid_positions(n: int, spacing_m: float, centre_m) -> np.ndarray:
@@ -65,7 +105,120 @@ def _crossing(n: int, spacing_m: float = np.sqrt(2.0)) -> Scenario:
     return Scenario("crossing", pos, dest, group)
 
 
-SCENARIOS = {"paper": _paper, "crossing": _crossing, "dense": _dense}
+def _split(n: int, k: int) -> list[int]:
+    """n into k near-equal parts (the first n % k one larger)."""
+    return [n // k + (1 if i < n % k else 0) for i in range(k)]
+
+
+def _grid_half_width_m(n: int, spacing_m: float) -> float:
+    return spacing_m * (int(np.ceil(np.sqrt(max(n, 1)))) - 1) / 2.0
+
+
+def _swap4(n: int, rng: np.random.Generator, spacing_m: float = np.sqrt(2.0)) -> Scenario:
+    if n < 4:
+        raise ScenarioError(f"swap4 needs n >= 4, got {n}")
+    sizes = _split(n, 4)
+    r = max(60.0, 2.0 * np.sqrt(2.0) * _grid_half_width_m(sizes[0], spacing_m) + 10.0)   # groups' grids never overlap
+    centres = np.array([[r, 0.0], [0.0, r], [-r, 0.0], [0.0, -r]])
+    pos = np.concatenate([grid_positions(m, spacing_m, c) for m, c in zip(sizes, centres)])
+    group = np.concatenate([np.full(m, g, dtype=np.int64) for g, m in enumerate(sizes)])
+    dest = -centres[group]                   # the opposite side
+    return Scenario("swap4", pos, dest, group)
+
+
+def _circle(n: int, rng: np.random.Generator, spacing_m: float = np.sqrt(2.0)) -> Scenario:
+    if n < 2:
+        raise ScenarioError(f"circle needs n >= 2, got {n}")
+    radius = max(20.0, spacing_m / (2.0 * np.sin(np.pi / n)))       # neighbours exactly spacing_m apart (chord)
+    ang = 2.0 * np.pi * np.arange(n) / n
+    pos = radius * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    return Scenario("circle", pos, -pos, np.arange(n, dtype=np.int64))
+
+
+def _merge(n: int, rng: np.random.Generator, spacing_m: float = np.sqrt(2.0)) -> Scenario:
+    k = int(rng.integers(2, 7))
+    if n < k:
+        k = max(1, n)
+    sizes = _split(n, k)
+    half = _grid_half_width_m(sizes[0], spacing_m) * np.sqrt(2.0)
+    # far enough out that neighbouring sources' grids do not overlap: chord at the smallest angle >= 2 half + 10 m
+    dist = max(80.0, (2.0 * half + 10.0) / (2.0 * np.sin(np.pi / max(k, 2))))
+    bearing = 2.0 * np.pi * (np.arange(k) + rng.uniform(-0.15, 0.15, size=k)) / k + rng.uniform(0, 2 * np.pi)
+    centres = dist * np.stack([np.cos(bearing), np.sin(bearing)], axis=1)
+    pos = np.concatenate([grid_positions(m, spacing_m, c) for m, c in zip(sizes, centres)])
+    group = np.concatenate([np.full(m, g, dtype=np.int64) for g, m in enumerate(sizes)])
+    return Scenario("merge", pos, np.zeros((n, 2)), group)
+
+
+def _poisson_disc(n: int, box_m: float, min_m: float, rng: np.random.Generator) -> np.ndarray:
+    """n points in [-box/2, box/2]^2, pairwise >= min_m apart: seeded rejection sampling on a grid of
+    cells of side min_m / sqrt(2) (at most one point a cell), in batches."""
+    cell = min_m / np.sqrt(2.0)
+    side = int(np.ceil(box_m / cell))
+    occupied = -np.ones((side + 4, side + 4), dtype=np.int64)
+    pts = np.empty((n, 2))
+    m = 0
+    for _ in range(200):
+        cand = rng.uniform(-box_m / 2, box_m / 2, size=(max(4 * (n - m), 64), 2))
+        ij = np.floor((cand + box_m / 2) / cell).astype(np.int64) + 2
+        for c, (i, j) in zip(cand, ij):
+            block = occupied[i - 2:i + 3, j - 2:j + 3]
+            near = block[block >= 0]
+            if near.size and np.min(np.linalg.norm(pts[near] - c, axis=1)) < min_m:
+                continue
+            if occupied[i, j] >= 0:
+                continue
+            occupied[i, j] = m
+            pts[m] = c
+            m += 1
+            if m == n:
+                return pts
+    raise ScenarioError(f"random: could not place {n} vehicles {min_m} m apart in a {box_m:.0f} m box")
+
+
+def _random(n: int, rng: np.random.Generator, min_spacing: float = RANDOM_MIN_SPACING_M) -> Scenario:
+    if n < 2:
+        raise ScenarioError(f"random needs n >= 2, got {n}")
+    box = max(60.0, np.sqrt(n) * min_spacing * 2.0)          # a quarter of the box's area filled at most
+    pos = _poisson_disc(n, box, min_spacing, rng)
+    g = int(rng.integers(2, 9)) if n >= 8 else 2
+    # groups: contiguous in a random direction (a group starts together), then 1..g-1 sites shared between them
+    axis = rng.normal(size=2)
+    order = np.argsort(pos @ (axis / np.linalg.norm(axis)), kind="stable")
+    group = np.empty(n, dtype=np.int64)
+    for k, idx in enumerate(np.array_split(order, g)):
+        group[idx] = k
+    n_sites = int(rng.integers(1, g))
+    site_of_group = rng.integers(0, n_sites, size=g)
+    site_of_group[:n_sites] = np.arange(n_sites)             # every site used
+    # sites far apart: the slot blocks (the start layout of the vehicles sharing a site, translated) must not overlap
+    reach = box * np.sqrt(2.0) / 2.0
+    sites = np.empty((n_sites, 2))
+    for s in range(n_sites):
+        for _ in range(1000):
+            c = rng.uniform(-1.5 * box, 1.5 * box, size=2)
+            if s == 0 or np.min(np.linalg.norm(sites[:s] - c, axis=1)) > 2.0 * reach + min_spacing:
+                sites[s] = c
+                break
+        else:
+            sites[s] = sites[s - 1] + np.array([2.0 * reach + min_spacing, 0.0])
+    return Scenario("random", pos, sites[site_of_group[group]], group)
+
+
+SCENARIOS = {"paper": _paper, "crossing": _crossing, "dense": _dense, "swap4": _swap4, "circle": _circle, "merge": _merge,
+             "random": _random}
+SEEDED = ("swap4", "circle", "merge", "random")
+"""Families whose generator takes the seed (the paper's three are fixed layouts)."""
+
+
+def check_flyable(sc: Scenario, safety_radius_m: float = DEFAULT_SAFETY_RADIUS_M) -> None:
+    """Refuse (ScenarioError naming the scenario, the quantity and the bound) a scenario whose starts or
+    slots are closer than twice the safety radius: no controller can keep them apart there."""
+    clearance = 2.0 * safety_radius_m
+    for what, value in (("start spacing", sc.min_start_spacing_m), ("slot spacing", sc.slot_spacing_m)):
+        if value < clearance:
+            raise ScenarioError(f"scenario {sc.name!r} (N = {sc.n}) cannot be flown safely: its {what} {value:.3f} m is below "
+                                f"twice the safety radius ({clearance:.3f} m)")
 
 
 def scenario_from_mission(mission) -> Scenario:
@@ -78,9 +231,12 @@ def scenario_from_mission(mission) -> Scenario:
                     initial_vel_m_s=np.zeros_like(a["launch_ne_m"]))
 
 
-def make_scenario(name: str, n: int) -> Scenario:
+def make_scenario(name: str, n: int, seed: int = 0) -> Scenario:
+    """The scenario ``name`` for N = n (the seeded families draw from ``numpy.random.default_rng((seed, 7))``)."""
     try:
         factory = SCENARIOS[name]
     except KeyError:
         raise ValueError(f"unknown scenario {name!r}; known: {', '.join(sorted(SCENARIOS))}") from None
+    if name in SEEDED:
+        return factory(n, np.random.default_rng((int(seed), 7)))
     return factory(n)

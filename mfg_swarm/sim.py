@@ -275,6 +275,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                               seed=cfg.seed, wall_s=time.perf_counter() - t_wall, scenario=sc.name,
                               preset=preset.name, path="sim")
     metrics["backstop_activations"] = int(backstop_rows.sum())
+    metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
+    metrics.update(start_spacing_m=sc.min_start_spacing_m, slot_spacing_m=sc.slot_spacing_m)
     if cfg.fail_vehicle is not None:
         K = cfg.fail_vehicle
         others = np.ones(n, dtype=bool); others[K] = False

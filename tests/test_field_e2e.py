@@ -117,3 +117,33 @@ def test_a_malformed_or_unsafe_mission_is_refused_before_any_vehicle_moves(tmp_p
     proc = subprocess.run([sys.executable, "-m", "mfg_autopilot.runtime.cli", "--instance", "0", "--n", "20", "--mission", str(bad)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "groups[2].site" in proc.stderr
+
+
+def test_a_denied_arming_ends_with_a_clear_error_and_the_vehicle_left_on_the_ground_disarmed(tmp_path):
+    """A field mission whose vehicle refuses to arm (a failed preflight check): the controller says so and
+    exits 1; the vehicle never left the ground and nothing else was commanded."""
+    from _net import running_mock_vehicle
+
+    mission = mission_from_ne(groups_ne=[{"name": "solo", "system_ids": [1], "launch_ne_m": (0.0, 0.0), "site_ne_m": (30.0, 0.0),
+                                          "slot_spacing_m": 3.0, "altitude_agl_m": 10.0}], safety_radius_m=0.5, on_arrival="land")
+    path = tmp_path / "solo.json"
+    path.write_text(json.dumps(mission.to_dict()))
+    o, d = mission.launch_geodetic(1), mission.datum
+    with running_mock_vehicle("--start", "ground", f"--origin={o.lat_deg},{o.lon_deg},{o.alt_amsl_m}", "--deny-arming",
+                              "--home-lat", str(d.lat_deg), "--home-lon", str(d.lon_deg), gcs=True) as mock:
+        log = tmp_path / "controller0.jsonl"
+        proc = subprocess.run([sys.executable, "-m", "mfg_autopilot.runtime.cli", "--instance", "0", "--n", "1", "--mission", str(path),
+                               "--connect", f"udpin:127.0.0.1:{mock.onboard_port}", "--log", str(log), "--exchange-timeout-s", "20",
+                               "--zenoh-listen", "tcp/127.0.0.1:0"], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 1
+        errors = [e for e in _events(log) if e["what"] == "error"]
+        assert errors and "COMPONENT_ARM_DISARM" in errors[0]["error"] or "denied" in errors[0]["error"].lower(), errors
+        what = [e["what"] for e in _events(log)]
+        assert "origin" in what and "takeoff" not in what and "offboard" not in what
+        assert "on_ground" in what                                        # the end state: nothing commanded on the ground
+        from mavlink_bridge import VehicleLink
+
+        with VehicleLink.open(mock.gcs_url, target_system=1) as gcs:
+            hb = gcs.wait_heartbeat(timeout_s=5.0)
+            lp = gcs.wait_local_position(None, timeout_s=5.0)
+        assert not hb.armed and lp.z_m == 0.0

@@ -1,0 +1,91 @@
+"""Collision-free at any size? Fly every scenario family at several N and seeds, MFG default and HJB_d
+side by side (issue 18), and print one table per family and N.
+
+    .venv/bin/python bench/safety_sweep.py --families swap4,circle,merge,random --n 100,1000 --seeds 1,2 \\
+        --modes mfg,hjb --steps 400 --out runs/safety [--fail-vehicle K --fail-at T] [--gust]
+
+Each point is `mfg-swarm sim` in its own process (its metrics.json kept under --out); HJB_d is
+`--mode hjb --range-m 100`. Columns: collided pairs, min separation (along step segments), arrived
+fraction, arrival time of the last UAV, motion energy and communication per UAV, backstop
+interventions, wall time. A mode the CLI does not know (e.g. `orca` before it exists) is skipped
+with a note. Nothing here is asserted: the table is the measurement (docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+COLUMNS = ("collision_pairs", "min_separation_m", "arrived_fraction", "arrival_time_s", "motion_energy_per_uav",
+           "comm_states_per_uav", "safety_interventions")
+
+
+def fly(family: str, n: int, seed: int, mode: str, steps: int, out: Path, extra: list[str]) -> dict:
+    args = [sys.executable, "-m", "mfg_swarm.cli", "sim", "--scenario", family, "--n", str(n), "--seed", str(seed), "--mode", mode,
+            "--steps", str(steps), "--out", str(out), "--no-progress", *extra]
+    if mode == "hjb":
+        args += ["--range-m", "100"]
+    t = time.perf_counter()
+    proc = subprocess.run(args, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "wall_process_s": wall}
+    m = json.loads((out / "metrics.json").read_text())
+    m["wall_process_s"] = wall
+    return m
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--families", default="paper,crossing,dense,swap4,circle,merge,random")
+    ap.add_argument("--n", default="100", help="comma-separated swarm sizes")
+    ap.add_argument("--seeds", default="1")
+    ap.add_argument("--modes", default="mfg,hjb")
+    ap.add_argument("--steps", type=int, default=400)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--fail-vehicle", type=int, default=None)
+    ap.add_argument("--fail-at", type=float, default=20.0)
+    ap.add_argument("--gust", action="store_true")
+    a = ap.parse_args(argv)
+    from mfg_autopilot.presets import MODES
+
+    extra = (["--fail-vehicle", str(a.fail_vehicle), "--fail-at", str(a.fail_at)] if a.fail_vehicle is not None else []) + \
+        (["--gust"] if a.gust else [])
+    rows = []
+    for family in a.families.split(","):
+        for n in (int(x) for x in a.n.split(",")):
+            print(f"\n### {family}, N = {n}\n")
+            print("| mode | seed | " + " | ".join(COLUMNS) + " | wall s |")
+            print("|---" * (len(COLUMNS) + 3) + "|")
+            for mode in a.modes.split(","):
+                if mode not in MODES:
+                    print(f"| {mode} | - | (mode not available: skipped) |")
+                    continue
+                for seed in (int(s) for s in a.seeds.split(",")):
+                    m = fly(family, n, seed, mode, a.steps, a.out / f"{family}-n{n}-{mode}-s{seed}", extra)
+                    rows.append({"family": family, "n": n, "mode": mode, "seed": seed, **{k: m.get(k) for k in COLUMNS},
+                                 "wall_s": m.get("wall_s"), "error": m.get("error")})
+                    if "error" in m:
+                        print(f"| {mode} | {seed} | error: {m['error']} |")
+                    else:
+                        print(f"| {mode} | {seed} | " + " | ".join(_fmt(m.get(k)) for k in COLUMNS) + f" | {_fmt(m.get('wall_s'))} |")
+                    sys.stdout.flush()
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "safety_sweep.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
