@@ -29,7 +29,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mfg_autopilot.guidance.planner import min_spacing_m, slots_from_sites
 
