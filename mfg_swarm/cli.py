@@ -87,6 +87,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-plot", action="store_true", help="do not draw the figures after the flight")
 
+    mis = sub.add_parser("mission", help="write a built-in scenario as a field mission file (docs/mission.md) to fly with --mission")
+    mis.add_argument("--scenario", default="paper", help="a grid-launched family: paper, crossing, dense, swap4 (default: paper)")
+    mis.add_argument("--n", type=int, default=9)
+    mis.add_argument("--seed", type=int, default=0)
+    mis.add_argument("--safety-radius-m", type=float, default=None, help="the airframe's (default: 0.05 m)")
+    mis.add_argument("--altitude-agl-m", type=float, default=10.0, help="cruise altitude of every group (default: 10 m)")
+    mis.add_argument("--on-arrival", choices=("hold", "land"), default="land")
+    mis.add_argument("--out", type=Path, required=True, help="the mission file to write")
+
     plot = sub.add_parser("plot", help="the paper's figures (Fig. 3, 4, 5) as PNG for a run or a folder of runs")
     plot.add_argument("dirs", nargs="+", type=Path, help="run folders, or folders holding run folders")
 
@@ -142,6 +151,18 @@ def _scenario(args):
     sc = make_scenario(args.scenario, args.n, args.seed)
     check_flyable(sc, DEFAULT_SAFETY_RADIUS_M if args.safety_radius_m is None else args.safety_radius_m)
     return sc
+
+
+def _cmd_mission(args) -> int:
+    from .scenarios import DEFAULT_SAFETY_RADIUS_M, make_scenario, mission_of_scenario
+
+    m = mission_of_scenario(make_scenario(args.scenario, args.n, args.seed),
+                            safety_radius_m=DEFAULT_SAFETY_RADIUS_M if args.safety_radius_m is None else args.safety_radius_m,
+                            altitude_agl_m=args.altitude_agl_m, on_arrival=args.on_arrival)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(m.to_dict(), indent=1) + "\n")
+    print(f"{args.out}: {m.n} vehicles in {len(m.groups)} groups around {m.datum.lat_deg}, {m.datum.lon_deg}", file=sys.stderr)
+    return 0
 
 
 def _cmd_sim(args) -> int:
@@ -253,6 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.cmd == "sim":
             return _cmd_sim(args)
+        if args.cmd == "mission":
+            return _cmd_mission(args)
         if args.cmd == "run":
             return _cmd_run(args)
         if args.cmd == "plot":

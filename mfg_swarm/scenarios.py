@@ -230,6 +230,34 @@ def scenario_from_mission(mission) -> Scenario:
                     initial_vel_m_s=np.zeros_like(a["launch_ne_m"]))
 
 
+def mission_of_scenario(sc: Scenario, *, safety_radius_m: float = DEFAULT_SAFETY_RADIUS_M, altitude_agl_m: float = 10.0,
+                        on_arrival: str = "hold", datum=None):
+    """A built-in scenario as a field mission around ``datum`` (default: ``mfg_autopilot.mission.DEFAULT_DATUM``):
+    one mission group per scenario group, launched on the same grid it starts on (system id = index + 1),
+    flying to its site at ``altitude_agl_m``. Only grid-launched groups with a site of their own can be
+    written (a mission file describes launch areas as grids and refuses overlapping slot blocks):
+    ScenarioError otherwise (``random`` and ``merge`` cannot be written)."""
+    from mfg_autopilot.mission import DEFAULT_DATUM, mission_from_ne
+
+    groups = []
+    for g in np.unique(sc.group):
+        idx = np.flatnonzero(sc.group == g)
+        pts = sc.initial_pos_m[idx]
+        site = sc.destination_m[idx]
+        if not np.allclose(site, site[0]):
+            raise ScenarioError(f"scenario {sc.name!r}: group {g} has more than one site; a mission group has one")
+        spacing = min_spacing_m(pts) if len(idx) > 1 else 2.0 * safety_radius_m
+        centre = pts[0] - grid_positions(len(idx), spacing, (0.0, 0.0))[0]         # the grid's centre (not the centroid)
+        if len(idx) > 1 and not np.allclose(grid_positions(len(idx), spacing, centre), pts, atol=1e-6):
+            raise ScenarioError(f"scenario {sc.name!r}: group {g} does not start on a square grid; a mission file cannot "
+                                f"describe its launch area")
+        groups.append({"name": f"group{g}", "system_ids": [int(i) + 1 for i in idx], "launch_ne_m": centre, "site_ne_m": site[0],
+                       "slot_spacing_m": spacing, "launch_spacing_m": spacing, "altitude_agl_m": altitude_agl_m})
+    return mission_from_ne(groups_ne=groups, datum=DEFAULT_DATUM if datum is None else datum, safety_radius_m=safety_radius_m,
+                           on_arrival=on_arrival, name=f"{sc.name}-n{sc.n}",
+                           description=f"the built-in scenario {sc.name!r}, N = {sc.n}, as a field mission (mfg-swarm mission)")
+
+
 def make_scenario(name: str, n: int, seed: int = 0) -> Scenario:
     """The scenario ``name`` for N = n (the seeded families draw from ``numpy.random.default_rng((seed, 7))``)."""
     try:

@@ -99,3 +99,24 @@ def test_closest_pair_is_found_between_samples():
     col = collisions(pos)
     assert col["min_pair_distance_m"] == pytest.approx(0.05) and col["closest_pair"] == (0, 1, 0)
     assert col["collision_pairs"] == 1
+
+
+@pytest.mark.parametrize("name,n", [("paper", 25), ("crossing", 16), ("dense", 9), ("swap4", 36), ("circle", 12)])
+def test_a_grid_scenario_becomes_a_field_mission_with_the_same_starts_and_sites(name, n):
+    from mfg_swarm.scenarios import mission_of_scenario, scenario_from_mission
+
+    sc = make_scenario(name, n)
+    m = mission_of_scenario(sc, on_arrival="land")
+    back = scenario_from_mission(m)
+    assert m.n == n and m.on_arrival == "land"
+    assert np.allclose(back.initial_pos_m, sc.initial_pos_m, atol=1e-6)
+    assert np.allclose(back.destination_m, sc.destination_m, atol=1e-6)
+
+
+@pytest.mark.parametrize("name,why", [("merge", "come within"), ("random", "square grid")])
+def test_a_scenario_a_mission_file_cannot_describe_is_refused(name, why):
+    from mfg_autopilot.mission import MissionError
+    from mfg_swarm.scenarios import mission_of_scenario
+
+    with pytest.raises((ScenarioError, MissionError), match=why):
+        mission_of_scenario(make_scenario(name, 16, seed=0))

@@ -21,7 +21,7 @@ offset size type     field
 4      4    u32      vehicle_id (0-based instance index)
 8      8    i64      step (control step, >= 0; 0 = the t = 0 exchange)
 16     8    f64      time_s (simulated time of the state, s)
-24     32   4 x f64  state [x_m, y_m, vx_m_s, vy_m_s], paper frame = LOCAL_NED (N, E)
+24     32   4 x f64  state [x_m, y_m, vx_m_s, vy_m_s] in the swarm frame (N, E; docs/mission.md)
 ====== ==== ======== =============================================================
 """
 
@@ -113,7 +113,7 @@ def _id_from_key(key: str) -> int | None:
 class StateMsg:
     """One vehicle's state at one control step (payload v1, see the module docstring).
 
-    ``state`` is ``[x_m, y_m, vx_m_s, vy_m_s]`` in the paper frame (= LOCAL_NED north, east).
+    ``state`` is ``[x_m, y_m, vx_m_s, vy_m_s]`` in the swarm frame (north, east: a mission's datum; without one the vehicles' shared LOCAL_NED).
     """
 
     vehicle_id: int
