@@ -10,7 +10,7 @@
 - ``circle``: N vehicles on a circle (neighbours sqrt(2) m apart, so the radius grows with N), each
   flying to its antipode (each vehicle its own group): the classic reciprocal-avoidance benchmark.
 - ``merge``: k sources (k = 2..6 from the seed) at distinct bearings, 80 m and more out, converging
-  on one site.
+  on one site area: each group's slot block on the side of the common centre facing its source.
 - ``random``: random starts in a box (at least ``RANDOM_MIN_SPACING_M`` apart, Poisson-disc
   rejection on a grid), 2..8 groups (from the seed) flying to 1..G-1 distinct random sites, so
   several groups share a site.
@@ -146,7 +146,14 @@ def _merge(n: int, rng: np.random.Generator, spacing_m: float = np.sqrt(2.0)) ->
     centres = dist * np.stack([np.cos(bearing), np.sin(bearing)], axis=1)
     pos = np.concatenate([grid_positions(m, spacing_m, c) for m, c in zip(sizes, centres)])
     group = np.concatenate([np.full(m, g, dtype=np.int64) for g, m in enumerate(sizes)])
-    return Scenario("merge", pos, np.zeros((n, 2)), group)
+    # one site area: each group's slot block (its grid, translated) on the side of the common centre facing
+    # its source, the blocks just far enough out to stay disjoint (adjacent bearings are >= 0.7 (2 pi / k) apart).
+    # (Sharing one site point would, under the slot rule, translate the whole start layout there: with the
+    # sources around the site that is where they already are, and nobody would move.)
+    gap = 0.7 * 2.0 * np.pi / max(k, 2)
+    r_block = (2.0 * half + spacing_m) / (2.0 * np.sin(gap / 2.0)) if k > 1 else 0.0
+    sites = r_block * np.stack([np.cos(bearing), np.sin(bearing)], axis=1)
+    return Scenario("merge", pos, sites[group], group)
 
 
 def _poisson_disc(n: int, box_m: float, min_m: float, rng: np.random.Generator) -> np.ndarray:
