@@ -30,19 +30,27 @@ def _split(nb: Neighbours, row: int) -> Neighbours:
     return Neighbours(nb.states[m], np.zeros(int(m.sum()), dtype=np.int64), None if nb.ids is None else nb.ids[m])
 
 
-def test_bank_of_one_gives_bit_identical_actions_to_a_bank_of_n():
-    # given the crossing scenario (the groups meet at ~16 s, so the plan's repulsion acts) and
-    # one bank for all N next to N banks of one, fed the same observations and sensor data
+@pytest.mark.parametrize("rigid", [False, True])
+def test_bank_of_one_gives_bit_identical_actions_to_a_bank_of_n(rigid):
+    # given the crossing scenario (interacting plan: the groups meet at ~16 s, so the plan's repulsion
+    # acts; rigid plan: the half turn) and one bank for all N next to N banks of one, fed the same
+    # observations and sensor data
+    from dataclasses import replace
+
+    from mfg_autopilot.guidance.rigid_plan import RigidPlan
+
+    preset = replace(DEFAULT, rigid_plan=rigid)
     sc = make_scenario("crossing", 10)
     n = sc.n
-    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=3)
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=3)
     S0 = as_f32(plant.states)
     ids = np.arange(n)
-    bank = make_controller("mfg", DEFAULT, sc.destination_m)
+    bank = make_controller("mfg", preset, sc.destination_m)
     bank.exchange_t0(S0, ids, ids, sc.destination_m)
+    assert isinstance(bank.plan, RigidPlan) == rigid
     singles = []
     for i in range(n):
-        c = make_controller("mfg", DEFAULT, sc.destination_m[i:i + 1])
+        c = make_controller("mfg", preset, sc.destination_m[i:i + 1])
         c.exchange_t0(S0, ids, np.array([i]), sc.destination_m)
         singles.append(c)
     np.testing.assert_array_equal(bank.destinations_m, np.concatenate([c.destinations_m for c in singles]))
@@ -50,15 +58,15 @@ def test_bank_of_one_gives_bit_identical_actions_to_a_bank_of_n():
     for k in range(60):
         obs = as_f32(plant.states)
         sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(bank.sensor_range_m, output_type="ndarray"))
-        a_bank = bank.step(Observation(k, k * DEFAULT.dt_s, obs, None, sensed)).acc_m_s2
+        a_bank = bank.step(Observation(k, k * preset.dt_s, obs, None, sensed)).acc_m_s2
         rep_seen |= bool(bank.plan.rep_active.any())
-        a_single = np.concatenate([c.step(Observation(k, k * DEFAULT.dt_s, obs[i:i + 1], None, _split(sensed, i))).acc_m_s2
+        a_single = np.concatenate([c.step(Observation(k, k * preset.dt_s, obs[i:i + 1], None, _split(sensed, i))).acc_m_s2
                                    for i, c in enumerate(singles)])
         # then every row's action is bit-identical
         np.testing.assert_array_equal(a_bank, a_single)
-        plant.step(as_f32(a_bank), DEFAULT.dt_s)
+        plant.step(as_f32(a_bank), preset.dt_s)
     np.testing.assert_array_equal(bank.w_H, np.concatenate([c.w_H for c in singles]))
-    assert rep_seen, "the test should cover the plan's interaction"
+    assert rep_seen or rigid, "the test should cover the plan's interaction"
 
 
 @pytest.mark.parametrize("K", [1, 3])
@@ -196,7 +204,9 @@ def test_a_gust_that_blows_everyone_alike_does_not_trigger_the_unplanned_respons
     S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=0).states)
     ids = np.arange(sc.n)
 
-    def backstop_rows(offset_fn, preset=DEFAULT, k0=34):
+    interacting = dataclasses.replace(DEFAULT, rigid_plan=False)      # the plan whose groups pass through each other
+
+    def backstop_rows(offset_fn, preset=interacting, k0=34):
         c = make_controller("mfg", preset, sc.destination_m)
         c.exchange_t0(S0, ids, ids, sc.destination_m)
         for k in range(k0):                                 # fly the plan to where the groups approach (17 s)
@@ -210,12 +220,12 @@ def test_a_gust_that_blows_everyone_alike_does_not_trigger_the_unplanned_respons
     assert not backstop_rows(gust).any()
     # (without the common-mode check every vehicle is 'unplanned' to every other and the approaching groups'
     # planned passes, closer than the unplanned trigger, set the escape off ...
-    no_cm = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False,
+    no_cm = dataclasses.replace(interacting, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False,
                                                                        escape_max_unplanned_fraction=1.0))
     assert backstop_rows(gust, no_cm).any()
     # ... unless, as by default, a row that senses mostly off-plan vehicles falls back to the half-plane push,
     # which leaves these 0.7 m passes alone)
-    no_cm_crowd = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False))
+    no_cm_crowd = dataclasses.replace(interacting, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False))
     assert not backstop_rows(gust, no_cm_crowd).any()
     # when instead one vehicle stops (vehicle 3, group A's front row: vehicle 0 flies 1.41 m behind it in its
     # lane) while the others fly the plan, the one behind reacts
@@ -233,7 +243,10 @@ def test_default_mfg_flies_collision_free_into_every_slot_talking_once(scenario,
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["arrived_fraction"] == 1.0, m["final_distance_mean_m"]
     assert m["comm_states_per_uav"] == n - 1
-    assert m["motion_energy_per_uav"] <= 1.1 * h["motion_energy_per_uav"], (m["motion_energy_per_uav"], h["motion_energy_per_uav"])
+    # MFG's motion energy: within 10 % of HJB_100's with the interacting plan; the rigid half turn of `crossing` flies
+    # semicircles (pi / 2 times the straight line) for its separation by construction and pays up to 50 % more
+    factor = 1.5 if scenario == "crossing" else 1.1
+    assert m["motion_energy_per_uav"] <= factor * h["motion_energy_per_uav"], (m["motion_energy_per_uav"], h["motion_energy_per_uav"])
     if scenario != "dense":
         assert h["collision_pairs"] == 0, h["collided_pairs_list"]       # default HJB_100: paper and crossing
         assert h["comm_states_per_uav"] > 100 * (n - 1)

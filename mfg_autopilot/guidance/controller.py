@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from mfg_autopilot.guidance.params import DefaultPreset
 from mfg_autopilot.guidance.planner import MeanFieldPlan, combine_priority, goal_acc, repulsion_from_neighbours
+from mfg_autopilot.guidance.rigid_plan import RigidPlan, rigid_plan_for
 from mfg_autopilot.interface import HeardSummary, Neighbours, Observation, StepInfo
 from mfg_autopilot.paper import kernels
 from mfg_autopilot.paper.features import make_sigma_F, make_sigma_H
@@ -184,7 +185,7 @@ class DefaultMFGController(_DefaultBase):
         self.w_F = np.zeros((self.n, self.sigma_F.M))
         self._GGt = p.cost.V_o @ p.cost.V_o.T
         kernels.warm_up()                   # load the compiled kernels now, not in the first control step
-        self.plan: MeanFieldPlan | None = None
+        self.plan: MeanFieldPlan | RigidPlan | None = None
         self._plan_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its particles), _plan_distance
         ps = p.backstop.plan_mismatch_s
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
@@ -199,8 +200,10 @@ class DefaultMFGController(_DefaultBase):
         self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
         self._plan_tree = None
         self._prepared, self._pending = None, None
-        self.plan = MeanFieldPlan(S0, sites_m, p.dt_s, p.cost, p.guidance, p.repulsion, use_slots=p.use_slots,
-                                  use_repulsion=p.use_repulsion)
+        rigid = (rigid_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2)
+                 if p.rigid_plan and p.use_slots else None)
+        self.plan = rigid if rigid is not None else MeanFieldPlan(S0, sites_m, p.dt_s, p.cost, p.guidance, p.repulsion,
+                                                                   use_slots=p.use_slots, use_repulsion=p.use_repulsion)
         self._dest = self.plan.slots_m[self.own_index].copy()
         w0 = fit_initial_fpk_weights(self.sigma_F, S0 - S0.mean(axis=0), np.asarray(p.learner.fpk_kde_bandwidth))
         self.w_F = np.tile(w0, (self.n, 1))

@@ -90,6 +90,8 @@ class DefaultPreset(Preset):
     tracking: TrackingParams = field(default_factory=TrackingParams)
     backstop: BackstopParams = field(default_factory=BackstopParams)
     use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)
+    rigid_plan: bool = True         # MFG: when the target layout is an isometry of the start, the plan is that rigid
+                                    # motion (guidance/rigid_plan.py: every distance kept by construction)
     use_slots: bool = True          # destination as a site with one slot per UAV
     use_repulsion: bool = True
 
