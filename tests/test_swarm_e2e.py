@@ -188,3 +188,24 @@ def test_launcher_killed_hard_takes_its_children_and_leaves_a_partial_folder(tmp
     from mfg_swarm.flightlog import read_controller_log, read_vehicle_tlog
     assert read_controller_log(out / "controllers" / "controller0.jsonl").steps
     assert read_vehicle_tlog(out / "vehicles" / "vehicle0.tlog", 1).state.shape[0] > 0
+
+
+@pytest.mark.slow
+def test_swap4_process_swarm_of_36_flies_the_rigid_half_turn_without_collision(tmp_path):
+    """Issue 18: four streams through the middle as real processes (mock vehicles, controllers, MAVLink,
+    Zenoh, lockstep): 0 collided pairs, everyone in its slot, N - 1 states received per UAV, and the
+    flight is the simulator's."""
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    args = ["--scenario", "swap4", "--n", "36", "--seed", "3", "--steps", "200"]
+    proc = _run(tmp_path / "run", *args, timeout=420)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0 and m["comm_states_per_uav"] == 35.0
+    assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]
+    sim = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", *args, "--out", str(tmp_path / "sim"), "--no-progress"],
+                         capture_output=True, text=True, timeout=300)
+    assert sim.returncode == 0, sim.stderr
+    a = np.load(tmp_path / "run" / "trajectories.npz")["pos_m"]
+    b = np.load(tmp_path / "sim" / "trajectories.npz")["pos_m"]
+    assert a.shape == b.shape and np.max(np.abs(a - b)) < POS_TOL_M
+    _assert_no_children_left(before)
