@@ -2,7 +2,8 @@
 
 ``VehicleLink`` owns a ``MavlinkPort``, a receive thread that keeps the latest typed
 telemetry of its target vehicle, a 1 Hz companion HEARTBEAT, and an optional thread
-streaming a held acceleration setpoint (PX4 needs >= 2 Hz before and during OFFBOARD).
+streaming a held setpoint (PX4 enters OFFBOARD only with a setpoint younger than COM_OF_LOSS_T and
+fails safe when they stop for that long; its docs ask for > 2 Hz).
 Commands follow the MAVLink command protocol: COMMAND_LONG, retransmitted with an
 incremented ``confirmation`` until a COMMAND_ACK arrives or ``timeout_s`` passes; mode
 and arming changes are then confirmed by the vehicle's HEARTBEAT. Every wait takes
@@ -505,13 +506,16 @@ class VehicleLink:
             self._held = sp
             self._held_time_boot_ms = time_boot_ms
 
-    def start_setpoint_stream(self, rate_hz: float = 20.0, acc_ned_m_s2: tuple[float, float, float] | None = None) -> None:
-        """Stream the held acceleration setpoint at ``rate_hz`` from a thread (PX4 needs
-        >= 2 Hz for > 1 s before OFFBOARD is accepted, and keeps needing it)."""
+    def start_setpoint_stream(self, rate_hz: float = 20.0, acc_ned_m_s2: tuple[float, float, float] | None = None,
+                              z_m: float | None = None) -> None:
+        """Stream the held setpoint at ``rate_hz`` from a thread: with ``acc_ned_m_s2`` (and ``z_m``:
+        altitude hold, type_mask 3387) a new one, else the one ``set_held_setpoint`` holds (acceleration
+        0 if none). PX4 (offboardCheck.cpp) enters OFFBOARD only with a setpoint younger than
+        COM_OF_LOSS_T and fails safe when the stream stops for that long."""
         if not (rate_hz > 0):
             raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
         if acc_ned_m_s2 is not None or self._held is None:
-            self.set_held_setpoint(acc_ned_m_s2 or (0.0, 0.0, 0.0))
+            self.set_held_setpoint(acc_ned_m_s2 or (0.0, 0.0, 0.0), z_m=z_m)
         self.stop_setpoint_stream()
         stop = threading.Event()
         self._stream_stop = stop
@@ -619,13 +623,15 @@ class VehicleLink:
         return self.set_mode(PX4_HOLD, timeout_s)
 
     def land(self, timeout_s: float) -> Heartbeat:
-        """PX4 Land (AUTO.LAND: main 4, sub 6)."""
+        """PX4 Land (AUTO.LAND: main 4, sub 6): descend at MPC_LAND_SPEED, touch down, auto-disarm
+        COM_DISARM_LAND later (``wait_disarmed``)."""
         return self.set_mode(PX4_LAND, timeout_s)
 
     def takeoff(self, alt_amsl_m: float | None, timeout_s: float) -> CommandAck:
-        """MAV_CMD_NAV_TAKEOFF (22): climb to ``alt_amsl_m`` (param 7; None: the vehicle's
-        MIS_TAKEOFF_ALT above home), then Hold. Only the command's ACK is waited for; the climb is
-        watched with ``wait_landed_state`` / the position. Raises CommandDenied (e.g. disarmed)."""
+        """MAV_CMD_NAV_TAKEOFF (22): AUTO.TAKEOFF to ``alt_amsl_m`` (param 7; None: the vehicle's
+        MIS_TAKEOFF_ALT above where it is), then Hold (AUTO.LOITER). Only the command's ACK is waited
+        for; the climb is watched with ``wait_landed_state`` / the position. PX4 accepts it while
+        disarmed too (a mode change; the climb starts at arming). Raises CommandDenied, CommandTimeout."""
         nan = math.nan
         alt = nan if alt_amsl_m is None else float(alt_amsl_m)
         return self.command_long(MavCmd.NAV_TAKEOFF, (nan, 0.0, 0.0, nan, nan, nan, alt), timeout_s)
@@ -658,6 +664,14 @@ class VehicleLink:
             raise TelemetryTimeout(f"EXTENDED_SYS_STATE landed_state in {tuple(int(s) for s in states)}", self.target_system, timeout_s)
         return m
 
+    def wait_disarmed(self, timeout_s: float) -> Heartbeat:
+        """The first HEARTBEAT without SAFETY_ARMED (at once if the latest one is): e.g. PX4's auto-disarm
+        COM_DISARM_LAND after a landing. Raises ArmNotConfirmed."""
+        hb = self.wait_for(Heartbeat, lambda h: not h.armed, timeout_s)
+        if hb is None:
+            raise ArmNotConfirmed(False, timeout_s)
+        return hb
+
     def _arm_disarm(self, arm: bool, timeout_s: float, force: bool) -> Heartbeat:
         deadline = time.monotonic() + timeout_s
         sent_at = time.monotonic()
@@ -675,7 +689,8 @@ class VehicleLink:
         return self._arm_disarm(True, timeout_s, force=False)
 
     def disarm(self, timeout_s: float, force: bool = False) -> Heartbeat:
-        """COMMAND_LONG 400 (param1 = 0; param2 = 21196 if ``force``)."""
+        """COMMAND_LONG 400 (param1 = 0; param2 = 21196 if ``force``). PX4 refuses it in the air
+        (TEMPORARILY_REJECTED, "Disarming denied: not landed") unless forced, which stops the motors."""
         return self._arm_disarm(False, timeout_s, force=force)
 
     def set_message_interval(self, msg_id: int, interval_s: float, timeout_s: float) -> CommandAck:

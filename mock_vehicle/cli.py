@@ -10,6 +10,7 @@ import signal
 import sys
 import threading
 
+from .params import ParamTable
 from .plant import WindParams
 from .vehicle import VehicleConfig
 
@@ -55,11 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--com-of-loss-t-s", type=float, default=d.com_of_loss_t_s, help="COM_OF_LOSS_T: offboard loss timeout, s")
     p.add_argument("--deny-arming", action="store_true", help="refuse arming (a failed preflight check; param SIM_ARM_DENY)")
     p.add_argument("--start", choices=("air", "ground"), default="air",
-                   help="air: hover at --initial-pos-m and --altitude-m, frozen until OFFBOARD (the default); ground: boot "
-                        "ON_GROUND, disarmed, at --initial-pos-m, and take off, land and disarm as PX4 does (docs/mavlink.md)")
+                   help="air: hover at --initial-pos-m and --altitude-m, disarmed, frozen until OFFBOARD (the default); "
+                        "ground: boot ON_GROUND, disarmed, at z = 0 at --initial-pos-m (the launch point, world frame), and "
+                        "take off, land and disarm as PX4 does (docs/mavlink.md)")
     p.add_argument("--origin", type=_floats((3,)), default=None, metavar="LAT,LON,ALT",
                    help="the vehicle's own EKF origin (deg, deg, m AMSL): LOCAL_POSITION_NED relative to it, announced as "
                         "GPS_GLOBAL_ORIGIN (default: the home, which is also the simulated world's frame)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="set a vehicle parameter at boot, e.g. COM_OBL_RC_ACT=4 (offboard loss: Land), MIS_TAKEOFF_ALT=5 "
+                        "(repeatable; the list: mock_vehicle/params.py, docs/mavlink.md)")
     for kind, hz in d.rates_hz.items():
         p.add_argument(f"--{kind.replace('_', '-')}-hz", type=float, default=hz, help=f"{kind.upper()} rate, Hz (0 disables)")
     p.add_argument("--signing-key", default=None, metavar="FILE",
@@ -84,6 +89,18 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         raise ValueError(f"--lockstep-resend-hz must be > 0 in lockstep, got {args.lockstep_resend_hz}")
     if args.origin is not None and not (-90 <= args.origin[0] <= 90 and -180 <= args.origin[1] <= 180 and math.isfinite(args.origin[2])):
         raise ValueError(f"--origin must be LAT,LON,ALT with |lat| <= 90, |lon| <= 180 and a finite altitude, got {args.origin}")
+    params = []
+    for item in args.param:
+        name, sep, value = item.partition("=")
+        try:
+            params.append((name.strip(), float(value)))
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise ValueError(f"--param must be NAME=VALUE with a number, got {item!r}")
+    err = next((e for e in (ParamTable().set(n, v) for n, v in params) if e), None)
+    if err:
+        raise ValueError(f"--param: {err}")
     wd = args.wind_diffusion
     diffusion = ((wd[0], 0.0), (0.0, wd[0])) if len(wd) == 1 else ((wd[0], wd[1]), (wd[2], wd[3]))
     wind = WindParams(c0_per_s=args.c0, mean_wind_m_s=tuple(args.mean_wind), wind_diffusion_m_s=diffusion)
@@ -106,6 +123,7 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         deny_arming=args.deny_arming,
         start_on_ground=args.start == "ground",
         origin=None if args.origin is None else tuple(args.origin),
+        params=tuple(params),
         rates_hz=rates,
         lockstep_resend_hz=args.lockstep_resend_hz,
         traffic_rate_hz=args.traffic_rate_hz,

@@ -39,7 +39,12 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("MPC_LAND_SPEED", 0.7, 0.1, 5.0, "m/s", "Landing descent speed (PX4)"),
     ParamSpec("MPC_Z_VEL_MAX_UP", 3.0, 0.1, 10.0, "m/s", "Largest climb speed of the altitude loop (PX4)"),
     ParamSpec("MPC_Z_VEL_MAX_DN", 1.5, 0.1, 10.0, "m/s", "Largest descent speed of the altitude loop (PX4)"),
-    ParamSpec("COM_DISARM_LAND", 2.0, -1.0, 20.0, "s", "Auto-disarm this long after touchdown; < 0 never (PX4)"),
+    ParamSpec("COM_DISARM_LAND", 2.0, -1.0, 20.0, "s", "Auto-disarm this long after a touchdown that followed a takeoff; <= 0 never (PX4)"),
+    ParamSpec("COM_DISARM_PRFLT", 10.0, -1.0, 60.0, "s", "Ground start: auto-disarm this long after arming without a takeoff; <= 0 never (PX4)"),
+    ParamSpec("COM_OBL_RC_ACT", 0.0, 0.0, 7.0, "enum", "Offboard loss action (PX4: 0 Position ... 4 Land, 5 Hold); the mock: 4 Land, else Hold"),
+    ParamSpec("MPC_Z_P", 1.0, 0.0, 1.5, "1/s", "Altitude loop: vertical velocity setpoint per metre of z error (PX4)"),
+    ParamSpec("MPC_Z_VEL_P_ACC", 4.0, 2.0, 15.0, "1/s", "Altitude loop: vertical acceleration per m/s of vz error (PX4)"),
+    ParamSpec("NAV_MC_ALT_RAD", 0.8, 0.05, 200.0, "m", "AUTO.TAKEOFF is over within this of its altitude (PX4 navigator)"),
 )
 
 

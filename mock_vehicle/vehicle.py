@@ -3,6 +3,11 @@ around the eq. 9 plant (issue 3; SPEC section 4). No sockets here: ``MockVehicle
 takes a decoded message, ``MockVehicle.tick`` advances the clocks; both send through the
 ``send(msg, port)`` callback given at construction (``port=None`` means every port).
 
+Where things live: this module holds the configuration, the input (commands, setpoints,
+parameters), the clocks, the horizontal dynamics and the proximity sensor; the PX4 mode machine
+(arming, takeoff, land, failsafe, the vertical axis, the ground) is ``lifecycle.LifecycleMixin``;
+what the vehicle reports is ``telemetry.TelemetryMixin``; PX4's setpoint gates are ``setpoint``.
+
 Clocks (docs/lockstep.md):
 - real time: simulated time = wall time since start; physics sub-stepped every
   ``physics_dt_s`` of wall time; ``time_boot_ms`` = wall ms since start.
@@ -18,26 +23,10 @@ for the rest). Signing what the vehicle sends is the port's job (``MavlinkPort``
 
 Dynamics (air start, the default): frozen at the initial state until the first OFFBOARD entry
 (the vehicle hovers at its slot); then OFFBOARD integrates the held setpoint, every other mode PX4
-Hold (``hold_acc_m_s2`` around where it began).
-
-Ground start (``start_on_ground``, issue 19): the vehicle boots ON_GROUND, disarmed, at its launch
-point, and does what PX4 does: arm; MAV_CMD_NAV_TAKEOFF climbs at MPC_TKO_SPEED to the commanded
-altitude (or MIS_TAKEOFF_ALT) in AUTO.TAKEOFF, then holds in AUTO.LOITER; OFFBOARD from the ground
-leaves it only when the setpoint asks to climb (a z position above, or vz < 0); MAV_CMD_NAV_LAND
-descends at MPC_LAND_SPEED, touches down and disarms COM_DISARM_LAND later. EXTENDED_SYS_STATE
-reports ON_GROUND -> TAKEOFF -> IN_AIR -> LANDING -> ON_GROUND.
-
-Altitude: a setpoint with a z position (type_mask 3387: z + ax, ay) is tracked like PX4's
-altitude loop (vz = clip(z_sp - z, -MPC_Z_VEL_MAX_UP, MPC_Z_VEL_MAX_DN)); Hold keeps the altitude it
-began at; an acceleration-only setpoint (3135) keeps the altitude constant (a real PX4 would hover
-on its thrust estimate and drift slowly: docs/mavlink.md). In lockstep the vertical manoeuvres
-of the AUTO modes (takeoff, land) run on the wall clock with the horizontal plant frozen, since
-lockstep time advances only with OFFBOARD setpoints.
-
-Frames (``geo.LocalFrame``): the plant flies in the world frame (the tangent plane at the home);
-with ``origin`` (its EKF origin, issue 19) the vehicle reports LOCAL_POSITION_NED relative to it,
-GLOBAL_POSITION_INT and HOME_POSITION in WGS84 (pymap3d), and GPS_GLOBAL_ORIGIN at boot and on
-request, as a real PX4 does.
+Hold (``hold_acc_m_s2`` around where it began). A setpoint PX4's position controller refuses
+(``setpoint.classify_setpoint``: an axis without a term, x/y not in pairs, a NaN in a used field)
+keeps OFFBOARD but flies PX4's "stop and wait" (velocity 0). Ground start (``start_on_ground``) and
+the altitude loop: ``lifecycle``. Own EKF origin (``origin``): ``telemetry`` and ``geo``.
 """
 
 from __future__ import annotations
@@ -51,92 +40,50 @@ from typing import Callable
 import numpy as np
 
 from mavlink_bridge import (
+    MSG_ID_BY_NAME,
     PX4_HOLD,
     PX4_LAND,
     PX4_OFFBOARD,
-    PX4_POSCTL,
-    PX4_TAKEOFF,
-    Attitude,
-    AutopilotVersion,
     BadData,
     CommandAck,
     CommandInt,
     CommandLong,
-    ExtendedSysState,
-    GlobalPositionInt,
-    GpsGlobalOrigin,
-    Heartbeat,
-    HomePosition,
-    LocalPositionNed,
-    MavAutopilot,
-    NamedValueInt,
     MavCmd,
-    MavFrame,
-    MavLandedState,
     MavModeFlag,
     MavParamType,
     MavResult,
-    MavSeverity,
-    MavState,
-    MavType,
     Message,
+    NamedValueInt,
     ParamRequestList,
     ParamRequestRead,
     ParamSet,
     ParamValue,
     PositionTargetTypeMask,
-    Px4MainMode,
     Px4Mode,
     Received,
     SetMode,
     SetPositionTargetLocalNed,
-    StatusText,
-    SysStatus,
     UnknownMessage,
 )
-from mavlink_bridge import MSG_ID_BY_NAME
+from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME
 from mavlink_bridge.ratelog import RejectLog
 
-from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME
-
 from .geo import LocalFrame
+from .lifecycle import LifecycleMixin
 from .params import ParamTable
 from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 from .proximity import traffic_reports
+from .setpoint import SETPOINT_LIMITS, check_setpoint, classify_setpoint  # noqa: F401  (check_setpoint: re-exported)
+from .telemetry import FAST_TELEMETRY, TELEMETRY_IDS, TelemetryMixin
 
 __all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint", "SETPOINT_LIMITS", "SIGNED_COMMAND_MESSAGES"]
 
 log = logging.getLogger("mock_vehicle")
 
-EARTH_RADIUS_M = 6_378_137.0
-GRAVITY_M_S2 = 9.80665
-HOLD_LIKE = (PX4_HOLD, PX4_POSCTL)
-Z_GAIN_PER_S = 1.0              # altitude loop: vz = clip(Z_GAIN (z_sp - z), ...), like MPC_Z_P's default
-TAKEOFF_DONE_M = 0.05           # AUTO.TAKEOFF is over within this of its altitude
-LIFTOFF_M = 0.1                 # OFFBOARD from the ground: a z setpoint this far above the ground lifts off
-CAPABILITIES = 2 | 8 | 128 | 8192  # PARAM_FLOAT | COMMAND_INT | SET_POSITION_TARGET_LOCAL_NED | MAVLINK2
-
-SETPOINT_LIMITS = {"position_m": 1.0e5, "velocity_m_s": 100.0, "acceleration_m_s2": 100.0, "yaw_rad": 100.0, "yaw_rate_rad_s": 100.0}
-"""Largest magnitude of a used SET_POSITION_TARGET_LOCAL_NED field; beyond it the setpoint
-is rejected ("setpoint out of range") before it can reach the plant. (The plant also
-saturates the acceleration at MPC_ACC_HOR_MAX.)"""
-
 SIGNED_COMMAND_MESSAGES = (CommandLong, CommandInt, SetMode, SetPositionTargetLocalNed, ParamSet)
 """Messages that command the vehicle; with signing on, each has its own rejection kind."""
 
 _ID = MSG_ID_BY_NAME
-FAST_TELEMETRY = ("local_position", "attitude", "global_position")
-"""In lockstep these follow the steps (plus ``lockstep_resend_hz`` re-sends while idle)
-instead of their wall-clock rates: between steps the state does not change."""
-TELEMETRY_IDS = {
-    _ID["HEARTBEAT"]: "heartbeat",
-    _ID["SYS_STATUS"]: "sys_status",
-    _ID["ATTITUDE"]: "attitude",
-    _ID["LOCAL_POSITION_NED"]: "local_position",
-    _ID["GLOBAL_POSITION_INT"]: "global_position",
-    _ID["HOME_POSITION"]: "home_position",
-    _ID["EXTENDED_SYS_STATE"]: "extended_sys_state",
-}
 
 
 @dataclass(frozen=True)
@@ -160,6 +107,7 @@ class VehicleConfig:
     deny_arming: bool = False
     start_on_ground: bool = False                          # boot ON_GROUND, disarmed, at initial_pos_m (z = 0)
     origin: tuple[float, float, float] | None = None       # EKF origin (lat_deg, lon_deg, alt_amsl_m); None: the home
+    params: tuple[tuple[str, float], ...] = ()             # PX4-style parameters set at boot (params.PARAM_SPECS), after the above
     rates_hz: dict = field(
         default_factory=lambda: {
             "heartbeat": 1.0,
@@ -188,49 +136,11 @@ def _finite(*xs: float) -> bool:
 
 
 _F = PositionTargetTypeMask
-_FORCE_SET = int(_F.FORCE_SET)          # the mask bits as plain ints: IntFlag arithmetic costs a Python call per bit
-_POSITION_IGNORE, _VELOCITY_IGNORE, _ACCELERATION_IGNORE = int(_F.POSITION_IGNORE), int(_F.VELOCITY_IGNORE), int(_F.ACCELERATION_IGNORE)
 _X_IGNORE, _Y_IGNORE, _VX_IGNORE, _VY_IGNORE, _AX_IGNORE, _AY_IGNORE = (
-    int(_F.X_IGNORE), int(_F.Y_IGNORE), int(_F.VX_IGNORE), int(_F.VY_IGNORE), int(_F.AX_IGNORE), int(_F.AY_IGNORE))
-_SETPOINT_FIELDS = (
-    (_X_IGNORE, "x_m", "position_m"), (_Y_IGNORE, "y_m", "position_m"), (int(_F.Z_IGNORE), "z_m", "position_m"),
-    (_VX_IGNORE, "vx_m_s", "velocity_m_s"), (_VY_IGNORE, "vy_m_s", "velocity_m_s"), (int(_F.VZ_IGNORE), "vz_m_s", "velocity_m_s"),
-    (_AX_IGNORE, "afx_m_s2", "acceleration_m_s2"), (_AY_IGNORE, "afy_m_s2", "acceleration_m_s2"),
-    (int(_F.AZ_IGNORE), "afz_m_s2", "acceleration_m_s2"),
-    (int(_F.YAW_IGNORE), "yaw_rad", "yaw_rad"), (int(_F.YAW_RATE_IGNORE), "yaw_rate_rad_s", "yaw_rate_rad_s"),
-)  # fmt: skip
-"""(ignore bit, field, SETPOINT_LIMITS key) of every field a mask can use."""
+    int(_F.X_IGNORE), int(_F.Y_IGNORE), int(_F.VX_IGNORE), int(_F.VY_IGNORE), int(_F.AX_IGNORE), int(_F.AY_IGNORE))  # plain ints: IntFlag costs a call per bit
 
 
-def check_setpoint(sp: SetPositionTargetLocalNed, system_id: int, component_id: int) -> tuple[str, str] | None:
-    """PX4's filter for SET_POSITION_TARGET_LOCAL_NED (SPEC 4). Returns None if usable, or
-    (kind, detail) of the rejection: wrong target, frame other than LOCAL_NED/BODY_NED,
-    FORCE_SET bit, a mask ignoring position, velocity and acceleration alike, or a
-    non-finite value in a field the mask uses."""
-    if sp.target_system not in (0, system_id):
-        return "setpoint wrong target system", f"target_system {sp.target_system}, this vehicle is {system_id}"
-    if sp.target_component not in (0, component_id):
-        return "setpoint wrong target component", f"target_component {sp.target_component}"
-    if sp.coordinate_frame not in (MavFrame.LOCAL_NED, MavFrame.BODY_NED):
-        return "setpoint unsupported frame", f"coordinate_frame {sp.coordinate_frame} (LOCAL_NED=1 or BODY_NED=8 only)"
-    mask = sp.type_mask
-    if mask & _FORCE_SET:
-        return "setpoint FORCE_SET bit", f"type_mask {mask:#06x}"
-    use_pos = (mask & _POSITION_IGNORE) != _POSITION_IGNORE
-    use_vel = (mask & _VELOCITY_IGNORE) != _VELOCITY_IGNORE
-    use_acc = (mask & _ACCELERATION_IGNORE) != _ACCELERATION_IGNORE
-    if not (use_pos or use_vel or use_acc):
-        return "setpoint ignores everything", f"type_mask {mask:#06x} ignores position, velocity and acceleration"
-    L = SETPOINT_LIMITS
-    used = [(getattr(sp, name), L[key]) for bit, name, key in _SETPOINT_FIELDS if not mask & bit]
-    if not _finite(*(v for v, _ in used)):
-        return "setpoint non-finite field", f"NaN/inf in a used field (type_mask {mask:#06x})"
-    if any(abs(v) > limit for v, limit in used):
-        return "setpoint out of range", f"a used field beyond its limit {SETPOINT_LIMITS} (type_mask {mask:#06x})"
-    return None
-
-
-class MockVehicle:
+class MockVehicle(LifecycleMixin, TelemetryMixin):
     """The PX4-like vehicle (see module docstring). ``send(msg, port)``: port None = all;
     ``send_batch(msgs, port)``, if given, sends several in order (e.g. in one datagram)."""
 
@@ -263,6 +173,7 @@ class MockVehicle:
                 "SIM_WIND_V21": v[1, 0],
                 "SIM_WIND_V22": v[1, 1],
                 "SIM_ARM_DENY": 1.0 if cfg.deny_arming else 0.0,
+                **dict(cfg.params),
             }
         )
         self.plant = SwarmPlant(
@@ -272,6 +183,8 @@ class MockVehicle:
             vehicle_ids=np.array([cfg.instance]),
             initial_vel_m_s=None if cfg.initial_vel_m_s is None else np.array([cfg.initial_vel_m_s], dtype=float),
         )
+        if cfg.params:
+            self._apply_params()          # a SIM_WIND_* or MPC_ACC_HOR_MAX given as a parameter reaches the plant
         self.rejects = RejectLog(log)
         self.frame = LocalFrame(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_amsl_m, cfg.origin)
         self.armed = False
@@ -283,12 +196,16 @@ class MockVehicle:
         self.z_target_m = self.z_m
         self._landed_since_s: float | None = 0.0 if self.landed else None
         self._vert_wall_s = 0.0          # lockstep: wall time the AUTO modes' vertical motion was integrated to
+        self._armed_at_s = 0.0           # wall time of the last arming (COM_DISARM_PRFLT)
+        self._taken_off_since_arming = False
+        self._takeoff_accept_m = self.params["NAV_MC_ALT_RAD"]   # AUTO.TAKEOFF ends within this of its altitude
         if self.landed:
             self.plant.states[0, 2:4] = 0.0
         self.home = self._here()         # (lat, lon, alt, x, y, z local): set at boot and at arming, as PX4
         self._origin_sent = cfg.origin is None
         self.hold_pos_m = np.array(cfg.initial_pos_m, dtype=float)
         self.setpoint: SetPositionTargetLocalNed | None = None
+        self._setpoint_flyable = True    # False: PX4's position controller refuses the held setpoint (stop and wait)
         self.applied_acc_m_s2 = np.zeros(2)
         self._t0 = clock()
         self._phys_t_s = 0.0  # real time: simulated time integrated so far
@@ -296,14 +213,12 @@ class MockVehicle:
         self._dt_ms = int(round(cfg.dt_s * 1000))
         if cfg.lockstep and abs(self._dt_ms - cfg.dt_s * 1000) > 1e-6:
             raise ValueError(f"lockstep dt_s must be a whole number of ms, got {cfg.dt_s}")
-        self._stream_start_wall: float | None = None
         self._last_sp_wall = -math.inf
         self._last_sp_sim_s = 0.0
         self._intervals_s = {k: (1.0 / hz if hz > 0 else math.inf) for k, hz in cfg.rates_hz.items()}
         self._next_due = {k: self._t0 for k in self._intervals_s}
         self._update_telemetry_due()
         self._next_resend = self._t0
-        self.n_steps_failsafe = 0
         # proximity sensor (docs/proximity.md): set by attach_world
         self._world_report: Callable[[int, np.ndarray], None] | None = None
         self._world_pending_ms: int | None = None   # lockstep: time reported, its sensed set not yet answered
@@ -365,20 +280,24 @@ class MockVehicle:
         return target_system in (0, self.sysid) and target_component in (0, self.compid)
 
     def _on_setpoint(self, sp: SetPositionTargetLocalNed, port: object | None) -> None:
-        bad = check_setpoint(sp, self.sysid, self.compid)
-        if bad is not None:
-            self.rejects.reject(*bad)
-            return
+        """PX4's receiver gate drops a setpoint outright; one only its position controller refuses is
+        still an offboard heartbeat and is held, flown as "stop and wait" (``setpoint.classify_setpoint``)."""
+        verdict = classify_setpoint(sp, self.sysid, self.compid)
+        if verdict is not None:
+            self.rejects.reject(verdict.kind, verdict.detail)
+            if not verdict.keeps_offboard:
+                return
+        flyable = verdict is None
         if self.cfg.lockstep and self.armed and self.mode == PX4_OFFBOARD:
             if sp.time_boot_ms == self.time_boot_ms():
-                self.setpoint = sp
+                self.setpoint, self._setpoint_flyable = sp, flyable
                 self._lockstep_step()
             elif self._world_pending_ms is None:  # idempotent retry answer (none while the world has not answered)
                 self._send_many(self._traffic_msgs() + [self._local_position()], port)
             return
         self._last_sp_wall = self.wall_s()
         self._last_sp_sim_s = self.sim_time_s()
-        self.setpoint = sp
+        self.setpoint, self._setpoint_flyable = sp, flyable
 
     def _offboard_stream_ok(self) -> bool:
         """PX4's offboard check (commander/HealthAndArmingChecks/checks/offboardCheck.cpp): an offboard
@@ -418,95 +337,6 @@ class MockVehicle:
         self._send(CommandAck(int(command), int(result), r.src_system, r.src_component), port)
         for m in after:
             self._send(m, port)
-
-    def _arm_disarm(self, p1: float, p2: float) -> MavResult:
-        if p1 == 1.0:
-            if self.params["SIM_ARM_DENY"] >= 0.5 and p2 != 21196.0:
-                self._statustext(MavSeverity.CRITICAL, "Preflight Fail: SIM_ARM_DENY set")
-                self.rejects.reject("arming denied", "SIM_ARM_DENY set")
-                return MavResult.DENIED
-            if not self.armed:
-                self.armed = True
-                self.home = self._here()          # PX4 sets home where it arms
-                self._landed_since_s = None       # COM_DISARM_LAND counts from a touchdown, not from arming
-                log.info("armed")
-                self._send_heartbeat()
-            return MavResult.ACCEPTED
-        if p1 == 0.0:
-            if self.armed:
-                self.armed = False
-                log.info("disarmed")
-                self._send_heartbeat()
-            return MavResult.ACCEPTED
-        return MavResult.DENIED
-
-    def _takeoff(self, alt_amsl_m: float) -> MavResult:
-        """MAV_CMD_NAV_TAKEOFF: climb at MPC_TKO_SPEED to ``alt_amsl_m`` (NaN: MIS_TAKEOFF_ALT above
-        home) in AUTO.TAKEOFF, then AUTO.LOITER. Denied while disarmed (PX4 needs an armed vehicle)."""
-        if not self.armed:
-            self._statustext(MavSeverity.CRITICAL, "Takeoff denied! Please arm first")
-            self.rejects.reject("takeoff denied", "vehicle disarmed")
-            return MavResult.DENIED
-        home_alt = self.home[2]
-        agl = alt_amsl_m - home_alt if math.isfinite(alt_amsl_m) else self.params["MIS_TAKEOFF_ALT"]
-        if not (0.0 < agl <= 1000.0):
-            self.rejects.reject("takeoff denied", f"takeoff altitude {agl:.1f} m above home out of (0, 1000]")
-            return MavResult.DENIED
-        self.z_target_m = self.frame.local_z_to_world(self.home[5]) - agl
-        self._lift_off()
-        self._set_mode(PX4_TAKEOFF, reason="takeoff command")
-        return MavResult.ACCEPTED
-
-    def _lift_off(self) -> None:
-        if self.landed:
-            self.landed = False
-            self._landed_since_s = None
-            self.plant.states[0, 2:4] = 0.0
-            self.hold_pos_m = self.state[0:2].copy()
-            log.info("lift-off")
-        self.flying = True
-        self._vert_wall_s = self.wall_s()
-
-    def _request_mode(self, mode: Px4Mode) -> MavResult:
-        if mode.main_mode == Px4MainMode.OFFBOARD:
-            mode = PX4_OFFBOARD
-            if self.mode != PX4_OFFBOARD and not self._offboard_stream_ok():
-                self._statustext(MavSeverity.CRITICAL, "Switching to Offboard is currently not available")
-                self.rejects.reject("OFFBOARD refused", f"no offboard setpoint within COM_OF_LOSS_T = {self.params['COM_OF_LOSS_T']:g} s")
-                return MavResult.TEMPORARILY_REJECTED
-        elif mode == PX4_TAKEOFF:
-            return self._takeoff(math.nan)
-        elif mode.main_mode == Px4MainMode.AUTO and mode.sub_mode in (0, PX4_HOLD.sub_mode):
-            mode = PX4_HOLD
-        elif mode not in (PX4_LAND, PX4_POSCTL):
-            self.rejects.reject("unsupported mode", f"mode {mode} not supported by the mock")
-            return MavResult.TEMPORARILY_REJECTED
-        self._set_mode(mode, reason="commanded")
-        return MavResult.ACCEPTED
-
-    def _set_mode(self, mode: Px4Mode, reason: str) -> None:
-        if mode == self.mode:
-            return
-        log.info("mode %s -> %s (%s)", self.mode, mode, reason)
-        self.mode = mode
-        if mode == PX4_OFFBOARD:
-            if not self.landed:
-                self.flying = True
-            self._last_sp_sim_s = self.sim_time_s()
-        elif mode in HOLD_LIKE or mode == PX4_LAND:
-            self.hold_pos_m = self.state[0:2].copy()
-            self.z_target_m = self.z_m
-        self._vert_wall_s = self.wall_s()
-        self._send_heartbeat()
-
-    def _on_set_mode_msg(self, m: SetMode) -> None:
-        if m.target_system not in (0, self.sysid):
-            self.rejects.reject("SET_MODE for another system", f"target_system {m.target_system}")
-            return
-        if not m.base_mode & MavModeFlag.CUSTOM_MODE_ENABLED:
-            self.rejects.reject("SET_MODE without custom mode", f"base_mode {m.base_mode}")
-            return
-        self._request_mode(Px4Mode.from_custom_mode(m.custom_mode))
 
     def _set_interval(self, msg_id_f: float, interval_us: float) -> MavResult:
         if not _finite(msg_id_f, interval_us):
@@ -597,6 +427,8 @@ class MockVehicle:
 
     def _current_acc_m_s2(self) -> np.ndarray:
         if self.mode == PX4_OFFBOARD:
+            if not self._setpoint_flyable:        # PX4's "stop and wait": velocity setpoint 0 (the PD's velocity gain)
+                return -2.0 * self.plant.states[:, 2:4]
             return self._setpoint_acc_m_s2().reshape(1, 2)
         return hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
 
@@ -614,79 +446,6 @@ class MockVehicle:
             self.rejects.reject("non-finite plant state", "restoring the previous state")
             self.plant.states = before
         self._vertical(dt_s)
-
-    # ------------------------------------------------------------------ altitude and the ground
-    def _z_setpoint_world(self) -> tuple[float | None, float | None]:
-        """(z, vz) the OFFBOARD setpoint asks for in the world frame, None where the mask ignores it."""
-        sp = self.setpoint
-        if sp is None:
-            return None, None
-        m = sp.type_mask
-        z = None if m & int(_F.Z_IGNORE) else self.frame.local_z_to_world(float(sp.z_m))
-        vz = None if m & int(_F.VZ_IGNORE) else float(sp.vz_m_s)
-        return z, vz
-
-    def _vertical(self, dt_s: float) -> None:
-        """z over dt_s in the current mode (module docstring); touchdown, takeoff completion."""
-        p = self.params
-        up, dn = p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"]
-        vz = 0.0
-        if self.mode == PX4_LAND:
-            vz = p["MPC_LAND_SPEED"]
-        elif self.mode == PX4_TAKEOFF:
-            vz = -min(p["MPC_TKO_SPEED"], max(0.0, self.z_m - self.z_target_m) / dt_s)
-        elif self.mode == PX4_OFFBOARD:
-            z_sp, vz_sp = self._z_setpoint_world()
-            if z_sp is not None:
-                vz = min(max(Z_GAIN_PER_S * (z_sp - self.z_m) + (vz_sp or 0.0), -up), dn)
-            elif vz_sp is not None:
-                vz = min(max(vz_sp, -up), dn)
-        elif self.mode in HOLD_LIKE:
-            vz = min(max(Z_GAIN_PER_S * (self.z_target_m - self.z_m), -up), dn)
-        if self.landed:
-            vz = 0.0                                # on the ground until a takeoff or a climbing setpoint lifts it off
-        self.vz_m_s = vz
-        self.z_m = min(0.0, self.z_m + vz * dt_s) if (self.cfg.start_on_ground or self.mode == PX4_LAND) else self.z_m + vz * dt_s
-        if self.mode == PX4_TAKEOFF and self.z_m - self.z_target_m <= TAKEOFF_DONE_M:
-            self.z_target_m = self.z_m
-            log.info("takeoff done at %.2f m above home", -self.z_m)
-            self._set_mode(PX4_HOLD, reason="takeoff done")
-        if not self.landed and self.z_m >= 0.0 and vz >= 0.0 and (self.mode == PX4_LAND or self.cfg.start_on_ground):
-            self._touch_down()
-
-    def _touch_down(self) -> None:
-        self.landed = True
-        self.flying = False
-        self.vz_m_s = 0.0
-        self.z_m = 0.0
-        self.plant.states[0, 2:4] = 0.0
-        self._landed_since_s = self.wall_s()
-        log.info("landed")
-        if self.params["COM_DISARM_LAND"] == 0.0 or not self.cfg.start_on_ground:
-            self._disarm_landed()
-
-    def _disarm_landed(self) -> None:
-        if self.armed:
-            self.armed = False
-            log.info("landed: disarmed")
-            self._send_heartbeat()
-
-    def _ground_tick(self) -> None:
-        """PX4's auto-disarm COM_DISARM_LAND after touchdown; the AUTO modes' vertical motion in lockstep."""
-        now = self.wall_s()
-        if self.cfg.lockstep and (self.mode in (PX4_TAKEOFF, PX4_LAND) or (self.mode in HOLD_LIKE and self.z_m != self.z_target_m)):
-            while self._vert_wall_s + self.cfg.physics_dt_s <= now:
-                self._vertical(self.cfg.physics_dt_s)
-                self._vert_wall_s += self.cfg.physics_dt_s
-        else:
-            self._vert_wall_s = now
-        t = self.params["COM_DISARM_LAND"]
-        if self.landed and self.armed and self._landed_since_s is not None and t >= 0 and now - self._landed_since_s >= t:
-            self._disarm_landed()
-        if self.landed and self.mode == PX4_OFFBOARD and self.armed:
-            z_sp, vz_sp = self._z_setpoint_world()
-            if (z_sp is not None and z_sp < -LIFTOFF_M) or (vz_sp is not None and vz_sp < 0.0):
-                self._lift_off()            # PX4 leaves idle in OFFBOARD only when the setpoint asks to climb
 
     def _lockstep_step(self) -> None:
         """Lockstep: one control step of dt_s with the setpoint just received, then telemetry.
@@ -787,10 +546,7 @@ class MockVehicle:
     def tick(self) -> None:
         """Advance the clocks: real-time physics, failsafe, periodic telemetry."""
         now = self._clock()
-        if self.mode == PX4_OFFBOARD and self.sim_time_s() - self._last_sp_sim_s > self.params["COM_OF_LOSS_T"]:
-            self._statustext(MavSeverity.WARNING, "Failsafe: offboard setpoints lost, Hold")
-            log.warning("offboard setpoint stream lost for > COM_OF_LOSS_T = %g s: failsafe to HOLD", self.params["COM_OF_LOSS_T"])
-            self._set_mode(PX4_HOLD, reason="offboard loss failsafe")
+        self._offboard_loss_tick()
         self._ground_tick()
         if not self._origin_sent:
             self._origin_sent = True
@@ -845,103 +601,11 @@ class MockVehicle:
                 t = min(t, self._t0 + self._last_sp_sim_s + self.params["COM_OF_LOSS_T"] + 1e-4)
         if self.cfg.lockstep and self._resend_allowed() and self.cfg.lockstep_resend_hz > 0:
             t = min(t, self._next_resend)
+        if self.cfg.lockstep and self._auto_vertical_pending():
+            t = min(t, self._t0 + self._vert_wall_s + self.cfg.physics_dt_s)   # the AUTO modes' climb or descent, on time
         if self._world_report is not None:
             if self.cfg.lockstep and self._world_pending_ms is not None:
                 t = min(t, self._world_reported_at + self.WORLD_RETRY_S)
             elif self.cfg.traffic_rate_hz > 0:
                 t = min(t, self._next_traffic)
         return t
-
-    # ------------------------------------------------------------------ output
-    def _statustext(self, severity: int, text: str) -> None:
-        self._send(StatusText(int(severity), text[:50]), None)
-
-    def _send_heartbeat(self) -> None:
-        self._send(self._heartbeat(), None)
-
-    def _heartbeat(self) -> Heartbeat:
-        base = MavModeFlag.CUSTOM_MODE_ENABLED | (MavModeFlag.SAFETY_ARMED if self.armed else 0)
-        if self.mode == PX4_OFFBOARD:
-            base |= MavModeFlag.GUIDED_ENABLED | MavModeFlag.STABILIZE_ENABLED
-        elif self.mode.main_mode == Px4MainMode.AUTO:
-            base |= MavModeFlag.AUTO_ENABLED | MavModeFlag.GUIDED_ENABLED | MavModeFlag.STABILIZE_ENABLED
-        return Heartbeat(
-            type=MavType.QUADROTOR,
-            autopilot=MavAutopilot.PX4,
-            base_mode=int(base),
-            custom_mode=self.mode.custom_mode,
-            system_status=MavState.ACTIVE if self.armed else MavState.STANDBY,
-        )
-
-    def _local_position(self) -> LocalPositionNed:
-        x, y, vx, vy = self.state.tolist()
-        if self.cfg.origin is None:
-            return LocalPositionNed(self.time_boot_ms(), x, y, self.z_m, vx, vy, self.vz_m_s)
-        lx, ly, lz, lvx, lvy = self.frame.world_to_local(x, y, self.z_m, vx, vy)
-        return LocalPositionNed(self.time_boot_ms(), lx, ly, lz, lvx, lvy, self.vz_m_s)
-
-    def _here(self) -> tuple[float, float, float, float, float, float]:
-        """(lat, lon, alt AMSL, and x, y, z in LOCAL_NED) of where the vehicle is: PX4's home."""
-        x, y = self.state[0:2].tolist()
-        if self.cfg.origin is None:
-            return (self.cfg.home_lat_deg, self.cfg.home_lon_deg, self.cfg.home_alt_amsl_m, 0.0, 0.0, 0.0)
-        lat, lon, _ = self.frame.world_to_geodetic(x, y, 0.0)
-        lx, ly, lz, _, _ = self.frame.world_to_local(x, y, 0.0, 0.0, 0.0)
-        return (lat, lon, self.cfg.home_alt_amsl_m, lx, ly, lz)
-
-    def _origin_msg(self) -> GpsGlobalOrigin:
-        lat, lon, alt = self.frame.origin_lat_lon_alt
-        return GpsGlobalOrigin(lat, lon, alt, 0)
-
-    def _attitude(self) -> Attitude:
-        an, ae = self.applied_acc_m_s2.tolist() if self._moving() else (0.0, 0.0)
-        return Attitude(self.time_boot_ms(), math.atan2(ae, GRAVITY_M_S2), math.atan2(-an, GRAVITY_M_S2), 0.0)
-
-    def _global_position(self) -> GlobalPositionInt:
-        x, y, vx, vy = self.state.tolist()
-        if self.cfg.origin is not None:
-            lat, lon, alt = self.frame.world_to_geodetic(x, y, self.z_m)
-            return GlobalPositionInt(self.time_boot_ms(), lat, lon, alt, -self.z_m, vx, vy, self.vz_m_s, 0.0)
-        lat0 = self.cfg.home_lat_deg
-        lat = lat0 + math.degrees(x / EARTH_RADIUS_M)
-        lon = self.cfg.home_lon_deg + math.degrees(y / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
-        return GlobalPositionInt(
-            self.time_boot_ms(), lat, lon, self.cfg.home_alt_amsl_m - self.z_m, -self.z_m, vx, vy, self.vz_m_s, 0.0
-        )
-
-    def _telemetry(self, kind: str) -> Message:
-        if kind == "heartbeat":
-            return self._heartbeat()
-        if kind == "local_position":
-            return self._local_position()
-        if kind == "attitude":
-            return self._attitude()
-        if kind == "global_position":
-            return self._global_position()
-        if kind == "home_position":
-            if self.cfg.origin is None:
-                return HomePosition(self.cfg.home_lat_deg, self.cfg.home_lon_deg, self.cfg.home_alt_amsl_m)
-            return HomePosition(*self.home)
-        if kind == "sys_status":
-            return SysStatus(load_permille=100, voltage_battery_v=16.2, battery_remaining_pct=100)
-        if kind == "extended_sys_state":
-            if self.cfg.start_on_ground:
-                landed = (MavLandedState.ON_GROUND if self.landed else MavLandedState.TAKEOFF if self.mode == PX4_TAKEOFF
-                          else MavLandedState.LANDING if self.mode == PX4_LAND else MavLandedState.IN_AIR)
-                return ExtendedSysState(0, int(landed))
-            landed = MavLandedState.IN_AIR if self.armed else MavLandedState.ON_GROUND
-            if self.mode == PX4_LAND and self.armed:
-                landed = MavLandedState.LANDING
-            return ExtendedSysState(0, int(landed))
-        raise KeyError(kind)
-
-    def _fast_telemetry(self) -> list[Message]:
-        return [self._local_position(), self._attitude(), self._global_position()]
-
-    def _message_by_id(self, msg_id: int) -> Message | None:
-        if msg_id == _ID["GPS_GLOBAL_ORIGIN"]:
-            return self._origin_msg()
-        if msg_id == _ID["AUTOPILOT_VERSION"]:
-            return AutopilotVersion(CAPABILITIES, flight_sw_version=(1 << 24) | (14 << 16), uid=self.sysid)
-        kind = TELEMETRY_IDS.get(msg_id)
-        return None if kind is None else self._telemetry(kind)

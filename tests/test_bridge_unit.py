@@ -284,7 +284,37 @@ def _telemetry_mix(seed: int):
     return msgs + [NamedValueInt(1500, "TRAFFIC_N", 30), LocalPositionNed(1500, 1.5, -2.25, -10.0, 0.1, 0.0, 0.0),
                    Attitude(1500, 0.1, -0.2, 0.0), GlobalPositionInt(1500, 47.4, 8.5, 498.0, 10.0, 1.0, -1.0, 0.0, None),
                    Heartbeat(), acceleration_setpoint(7, 1, (0.5, -0.25, 0.0), 1500), ExtendedSysState(0, 2),
-                   SysStatus(load_permille=100, voltage_battery_v=16.2, battery_remaining_pct=100)]
+                   SysStatus(load_permille=100, voltage_battery_v=16.2, battery_remaining_pct=100),
+                   GpsGlobalOrigin(47.3977419, 8.5455938, 488.125, 1234567), GpsGlobalOrigin(-33.9, 151.2, -12.5, 0)]
+
+
+def test_origin_and_home_encode_byte_for_byte_as_pymavlink_packs_their_wire_values():
+    """GPS_GLOBAL_ORIGIN and HOME_POSITION (issue 19): MavCodec.encode gives the bytes pymavlink's own
+    encoder packs from the wire values (degE7, mm, rounded; local x, y, z as float32), for random and
+    edge values, and decoding gives the typed message back within that quantisation."""
+    import random
+
+    from mavlink_bridge import codec as C
+
+    rng = random.Random(19)
+    fast, ref = MavCodec(9, 1), MavCodec(9, 1)
+    for i in range(300):
+        lat, lon = rng.uniform(-90.0, 90.0), rng.uniform(-180.0, 180.0)
+        alt = rng.choice((0.0, -0.0004, 488.0005, 8848.86, -430.5, rng.uniform(-500.0, 9000.0)))
+        x, y, z = (rng.choice((0.0, -1e-7, rng.uniform(-3000.0, 3000.0))) for _ in range(3))
+        t_us = rng.choice((0, 1, 2**63 - 1, rng.randrange(2**40)))
+        for m, wire in (
+            (GpsGlobalOrigin(lat, lon, alt, t_us), ref._tx.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3), t_us)),
+            (HomePosition(lat, lon, alt, x, y, z), ref._tx.home_position_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3), x, y, z,
+                                                                                [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0)),
+        ):
+            packet = fast.encode(m)
+            assert packet == bytes(wire.pack(ref._tx)), (i, m)
+            ref._tx.seq = (ref._tx.seq + 1) % 256
+            (r,) = MavCodec(1, 1).decode(packet)
+            assert type(r.msg) is type(m) and (r.msg.lat_deg, r.msg.lon_deg) == pytest.approx((lat, lon), abs=1e-7)
+            assert r.msg.alt_amsl_m == pytest.approx(alt, abs=1e-3)
+    assert C.MAVLINK_MSG_ID["GPS_GLOBAL_ORIGIN"] in C._RX        # on the fast receive path too (test above)
 
 
 def test_fast_datagram_decoding_equals_pymavlink():
