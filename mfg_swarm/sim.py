@@ -276,6 +276,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                               preset=preset.name, path="sim")
     metrics["backstop_activations"] = int(backstop_rows.sum())
     metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
+    cert = getattr(ctrl, "plan_certificate", None)
+    if cert is not None:
+        metrics["plan"] = cert            # what the t = 0 plan guarantees (guidance: rigid, scheduled groups, or none)
     metrics.update(start_spacing_m=sc.min_start_spacing_m, slot_spacing_m=sc.slot_spacing_m)
     if cfg.fail_vehicle is not None:
         K = cfg.fail_vehicle

@@ -92,6 +92,10 @@ class DefaultPreset(Preset):
     use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)
     rigid_plan: bool = True         # MFG: when the target layout is an isometry of the start, the plan is that rigid
                                     # motion (guidance/rigid_plan.py: every distance kept by construction)
+    group_plan: bool = True         # MFG: otherwise every group a rigid translation on a schedule checked in space-time at t = 0
+                                    # (guidance/group_plan.py); if no schedule is found, the interacting plan
+    group_plan_clearance_fraction: float = 0.75   # ... certified to keep other groups' particles this x the start/slot spacing apart
+    rigid_translation: bool = True  # MFG: a single group's plan is its rigid translation to the site (False: the interacting plan)
     use_slots: bool = True          # destination as a site with one slot per UAV
     use_repulsion: bool = True
 
