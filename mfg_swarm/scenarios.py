@@ -195,8 +195,9 @@ def _random(n: int, rng: np.random.Generator, min_spacing: float = RANDOM_MIN_SP
     for k, idx in enumerate(np.array_split(order, g)):
         group[idx] = k
     n_sites = int(rng.integers(1, g))
-    site_of_group = rng.integers(0, n_sites, size=g)
-    site_of_group[:n_sites] = np.arange(n_sites)             # every site used
+    # the groups sharing a site are neighbours (consecutive bands): g bands cut into n_sites runs at random
+    cuts = np.sort(rng.choice(np.arange(1, g), size=n_sites - 1, replace=False))
+    site_of_group = np.searchsorted(cuts, np.arange(g), side="right")
     # sites far apart: the slot blocks (the start layout of the vehicles sharing a site, translated) must not overlap
     reach = box * np.sqrt(2.0) / 2.0
     sites = np.empty((n_sites, 2))
