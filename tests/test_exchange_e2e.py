@@ -270,7 +270,7 @@ def test_watcher_example_prints_decoded_states(swarm_name):
             procs.append(w)
             lines = []
             while sum(ln.startswith("init ") for ln in lines) < 2:  # t = 0 states first
-                lines.append(w.next_line(15))
+                lines.append(w.next_line(40))   # a cold Python + zenoh start on a loaded 2-core machine
             step = 1
             deadline = time.monotonic() + 20
             while w.p.poll() is None and time.monotonic() < deadline:
