@@ -282,6 +282,6 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
     if S0.shape[0] < 2:
         return None
     plan = GroupPlan(S0, sites_m, dt_s, cost, v_max_m_s, a_kin_max_m_s2)
-    if not np.isfinite(plan.spacing_m) or plan.spacing_m <= 0:
-        return None
+    if plan.G < 2 or not np.isfinite(plan.spacing_m) or plan.spacing_m <= 0:
+        return None            # one group: its rigid translation is rigid_plan's (DefaultPreset.rigid_translation)
     return schedule_groups(plan, clearance_fraction * plan.spacing_m, **schedule_kw)
