@@ -1,14 +1,17 @@
-"""Collision-free at any size? Fly every scenario family at several N and seeds, MFG default and HJB_d
-side by side (issue 18), and print one table per family and N.
+"""Collision-free at any size? Fly every scenario family at several N and seeds, MFG default, HJB_d and
+the ORCA baseline side by side (issue 18), and print one table per family and N.
 
     .venv/bin/python bench/safety_sweep.py --families swap4,circle,merge,random --n 100,1000 --seeds 1,2 \\
-        --modes mfg,hjb --steps 400 --out runs/safety [--fail-vehicle K --fail-at T] [--gust]
+        --modes mfg,hjb,orca --steps 400 --out runs/safety [--fail-vehicle K --fail-at T] [--gust]
 
 Each point is `mfg-swarm sim` in its own process (its metrics.json kept under --out); HJB_d is
-`--mode hjb --range-m 100`. Columns: collided pairs, min separation (along step segments), arrived
-fraction, arrival time of the last UAV, motion energy and communication per UAV, backstop
-interventions, wall time. A mode the CLI does not know (e.g. `orca` before it exists) is skipped
-with a note. Nothing here is asserted: the table is the measurement (docs/benchmarks.md).
+`--mode hjb --range-m 100`, ORCA `--mode orca` (no communication). Columns: collided pairs, min
+separation (along step segments), arrived fraction (within 1 m of the own destination: the slot for
+MFG and HJB_d, the mission site for ORCA, which has no slot rule), arrived_area (at the end within
+the group's slot area: max |slot - site| over the group + 1 m, from the site: where a controller
+without slots can put a group that shares one site point), arrival time of the last UAV, motion
+energy and communication per UAV, safety interventions, wall time. A mode the CLI does not know is
+skipped with a note. Nothing here is asserted: the table is the measurement (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -20,8 +23,31 @@ import sys
 import time
 from pathlib import Path
 
-COLUMNS = ("collision_pairs", "min_separation_m", "arrived_fraction", "arrival_time_s", "motion_energy_per_uav",
-           "comm_states_per_uav", "safety_interventions")
+COLUMNS = ("collision_pairs", "min_separation_m", "arrived_fraction", "arrived_area_fraction", "arrival_time_s",
+           "motion_energy_per_uav", "comm_states_per_uav", "safety_interventions")
+
+
+def arrived_area_fraction(family: str, n: int, seed: int, out: Path) -> float | None:
+    """Fraction of UAVs whose final position is within their group's slot area around their mission site:
+    |r_i(T) - site_i| <= max over the vehicles sharing site_i of |slot_j - site_j| + ARRIVAL_TOLERANCE_M
+    (slots by the default controller's rule, scenarios.Scenario.slots_m)."""
+    import numpy as np
+
+    from mfg_swarm.metrics import ARRIVAL_TOLERANCE_M
+    from mfg_swarm.scenarios import make_scenario
+
+    try:
+        pos = np.load(out / "trajectories.npz")["pos_m"][-1]
+    except (OSError, KeyError):
+        return None
+    sc = make_scenario(family, n, seed)
+    site = sc.destination_m
+    _, g = np.unique(site, axis=0, return_inverse=True)
+    g = g.reshape(-1)
+    spread = np.linalg.norm(sc.slots_m - site, axis=1)
+    area = np.zeros(int(g.max()) + 1)
+    np.maximum.at(area, g, spread)
+    return float(np.mean(np.linalg.norm(pos - site, axis=1) <= area[g] + ARRIVAL_TOLERANCE_M))
 
 
 def fly(family: str, n: int, seed: int, mode: str, steps: int, out: Path, extra: list[str]) -> dict:
@@ -36,6 +62,7 @@ def fly(family: str, n: int, seed: int, mode: str, steps: int, out: Path, extra:
         return {"error": (proc.stderr.strip().splitlines() or ["?"])[-1], "wall_process_s": wall}
     m = json.loads((out / "metrics.json").read_text())
     m["wall_process_s"] = wall
+    m["arrived_area_fraction"] = arrived_area_fraction(family, n, seed, out)
     return m
 
 
@@ -52,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--families", default="paper,crossing,dense,swap4,circle,merge,random")
     ap.add_argument("--n", default="100", help="comma-separated swarm sizes")
     ap.add_argument("--seeds", default="1")
-    ap.add_argument("--modes", default="mfg,hjb")
+    ap.add_argument("--modes", default="mfg,hjb", help="comma-separated: mfg, hjb (--range-m 100), orca, ...")
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--fail-vehicle", type=int, default=None)

@@ -7,6 +7,9 @@ their controllers here, so a preset means the same everywhere. Built-in presets:
 - ``paper`` / ``paper-lqr``: the paper's Algorithms 3 and 4 (:mod:`mfg_autopilot.paper`), the latter
   warm-started from the LQR value; in the ``*-pde`` modes, Algorithms 1 and 2 (:mod:`mfg_autopilot.pde`).
 
+The ``orca`` mode (``default`` preset) is the baseline the MFG controller is compared against:
+ORCA on the proximity sensor's neighbours, no communication (:mod:`mfg_autopilot.safety.orca`).
+
 A new controller is added with :func:`register` (see docs/architecture.md). This module sits
 above the controller rooms (it imports them) and below the runtime (which imports it); the
 rooms it loads are imported on first use, so a process pays only for the controller it flies.
@@ -23,8 +26,9 @@ from mfg_autopilot.paper.params import PAPER, PAPER_LQR, Preset
 
 __all__ = ["MODES", "DEFAULT_PRESET_NAME", "preset_by_name", "make_controller", "register", "warm_up"]
 
-MODES = ("mfg", "hjb", "mfg-pde", "hjb-pde")
-"""mfg / hjb: the learned controllers (Algorithms 4 / 3); *-pde: the solved ones (2 / 1)."""
+MODES = ("mfg", "hjb", "mfg-pde", "hjb-pde", "orca")
+"""mfg / hjb: the learned controllers (Algorithms 4 / 3); *-pde: the solved ones (2 / 1); orca: the
+communication-free reciprocal-collision-avoidance baseline (``default`` preset only; safety/orca.py)."""
 
 DEFAULT_PRESET_NAME = "default"
 """The preset every entry point flies unless told otherwise."""
@@ -50,6 +54,12 @@ def _default(mode: str) -> Factory:
     return {"hjb": DefaultHJBController, "mfg": DefaultMFGController}[mode]
 
 
+def _orca() -> Factory:
+    from mfg_autopilot.safety.orca import OrcaController
+
+    return OrcaController
+
+
 def _default_preset() -> Preset:
     from mfg_autopilot.guidance.params import DEFAULT
 
@@ -63,6 +73,7 @@ _FACTORIES: dict[tuple[str, str], Callable[[], Factory]] = {
     ("paper-lqr", "hjb"): lambda: _paper("hjb"), ("paper-lqr", "mfg"): lambda: _paper("mfg"),
     ("paper", "hjb-pde"): lambda: _pde("hjb-pde"), ("paper", "mfg-pde"): lambda: _pde("mfg-pde"),
     ("default", "hjb"): lambda: _default("hjb"), ("default", "mfg"): lambda: _default("mfg"),
+    ("default", "orca"): _orca,
 }
 
 

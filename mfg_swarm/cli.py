@@ -28,7 +28,8 @@ def _add_common(p: argparse.ArgumentParser) -> None:
                         "flies, then holds or lands; `sim` flies the same mission in the swarm frame, airborne")
     p.add_argument("--n", type=int, default=25, help="number of UAVs N (default: 25)")
     p.add_argument("--mode", choices=MODES, default="mfg",
-                   help="mfg: MFG learning control (Alg. 4); hjb: HJB_d learning control (Alg. 3); *-pde: the solved controllers (Alg. 2 / 1) (default: mfg)")
+                   help="mfg: MFG learning control (Alg. 4); hjb: HJB_d learning control (Alg. 3); *-pde: the solved controllers (Alg. 2 / 1); "
+                        "orca: the ORCA baseline, no communication (default preset) (default: mfg)")
     rng = p.add_mutually_exclusive_group()
     rng.add_argument("--range-m", type=float, default=None, help="HJB_d radio range d in metres")
     rng.add_argument("--power-mw", type=float, default=None, help="HJB_d transmit power P in mW; d = [P/(theta sigma^2)]^(1/alpha)")

@@ -21,13 +21,14 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("mfg_autopilot", "mfg_swarm", "mock_vehicle", "mavlink_bridge")
 LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
 
-# Imports the fixture tree keeps so that it passes as the real code does (the numba contract's
-# ignore_imports must match something; a kernel imports numba).
+# Imports the fixture tree keeps so that it passes as the real code does (the numba and pyrvo contracts'
+# ignore_imports must match something; a kernel imports numba, the orca bank pyrvo).
 BASE_IMPORTS = {
     "mfg_autopilot/paper/kernels.py": "import numba\n",
     "mfg_autopilot/safety/kernels.py": "import numba\n",
     "mfg_swarm/spatial.py": "import numba\n",
     "mfg_autopilot/safety/backstop.py": "from mfg_autopilot.safety import kernels\n",
+    "mfg_autopilot/safety/orca.py": "import pyrvo\n",
 }
 
 
@@ -88,6 +89,8 @@ def test_the_fixture_tree_keeps_every_contract(tmp_path):
     ("mfg_swarm/launcher.py", "import zenoh\n", "zenoh"),
     ("mfg_autopilot/paper/costs.py", "import numba\n", "numba"),
     ("mock_vehicle/plant.py", "import numba\n", "numba"),
+    ("mfg_autopilot/safety/backstop.py", "import pyrvo\n", "pyrvo"),
+    ("mfg_swarm/sim.py", "from pyrvo import RVOSimulator\n", "pyrvo"),
     ("mfg_autopilot/guidance/controller.py", "import socket\n", "no I/O"),
     ("mfg_autopilot/paper/learners.py", "import logging\n", "no I/O"),
     # a lazy (function-level) import that closes a circle

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from mfg_autopilot.paper.params import CostParams, LearnerParams, Preset
-from mfg_autopilot.safety.params import BackstopParams
+from mfg_autopilot.safety.params import BackstopParams, OrcaParams
 
 __all__ = ["GuidanceParams", "RepulsionParams", "TrackingParams", "DefaultPreset", "DEFAULT"]
 
@@ -89,6 +89,7 @@ class DefaultPreset(Preset):
     hjb_repulsion: RepulsionParams = field(default_factory=lambda: RepulsionParams(heard_guard_fraction=0.5))   # HJB_d's reactive repulsion on heard states
     tracking: TrackingParams = field(default_factory=TrackingParams)
     backstop: BackstopParams = field(default_factory=BackstopParams)
+    orca: OrcaParams = field(default_factory=OrcaParams)     # the ``orca`` mode's baseline (safety/orca.py), not used by mfg / hjb
     use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)
     rigid_plan: bool = True         # MFG: when the target layout is an isometry of the start, the plan is that rigid
                                     # motion (guidance/rigid_plan.py: every distance kept by construction)

@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--instance", type=int, required=True, help="vehicle instance I (MAVLink system I+1, Zenoh id I)")
     p.add_argument("--connect", default=None, help="MAVLink connection string (default udpin:127.0.0.1:14540+I); "
                                                    "udpin:, udpout:, tcp:, or a serial device /dev/ttyX:BAUD")
-    p.add_argument("--mode", choices=MODES, default="mfg", help="mfg (Algorithm 4) or hjb (HJB_d, Algorithm 3)")
+    p.add_argument("--mode", choices=MODES, default="mfg", help="mfg (Algorithm 4), hjb (HJB_d, Algorithm 3), *-pde (Algorithms 2 / 1 solved), orca (the ORCA baseline: no communication)")
     p.add_argument("--preset", default=DEFAULT_PRESET_NAME, help=f"controller preset (default: {DEFAULT_PRESET_NAME})")
     p.add_argument("--n", type=int, required=True, help="swarm size N (ids 0..N-1)")
     p.add_argument("--swarm", default="swarm", help="swarm name: the Zenoh key prefix mfg/<swarm>/ (default: swarm)")

@@ -1,13 +1,14 @@
 """Parameters of the safety layer (the proximity backstop), declared once with units.
 
-Reasons and measured effects: ``docs/default_controller.md`` (section "Backstop").
+Reasons and measured effects: ``docs/default_controller.md`` (section "Backstop"); the ``orca`` baseline:
+``docs/benchmarks.md`` ("ORCA baseline").
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["BackstopParams"]
+__all__ = ["BackstopParams", "OrcaParams"]
 
 
 @dataclass(frozen=True)
@@ -51,3 +52,29 @@ class BackstopParams:
     escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
+
+
+@dataclass(frozen=True)
+class OrcaParams:
+    """The ``orca`` baseline (:mod:`mfg_autopilot.safety.orca`): optimal reciprocal collision
+    avoidance (van den Berg, Guy, Lin and Manocha 2011) over what the proximity sensor sees.
+
+    In ORCA's model every vehicle is a disc of ``radius_m`` that can take any velocity up to
+    ``max_speed_m_s`` at once; a pair is kept ``2 radius_m`` apart for ``time_horizon_s`` if both
+    take half of the velocity change. Our vehicles are acceleration-limited (the preset's
+    ``learner.acc_max_m_s2``), so the radius carries the margin for what a step cannot reach."""
+
+    radius_m: float = 0.2               # ORCA's disc per vehicle (2 x 0.2 = 0.4 m < the dense start spacing 0.5 m)
+    time_horizon_s: float = 5.0         # tau: velocities that collide within tau are excluded (2 s: 2-8x the collided pairs)
+    neighbour_dist_m: float = 10.0      # neighbours farther than this are ignored (<= the sensor range)
+    max_neighbours: int = 30            # only the nearest this many sensed vehicles get an ORCA half-plane (RVO2's
+                                        # examples use 10: in converging streams the threats are not the 10 nearest)
+    max_speed_m_s: float = 4.0          # the disc of admissible velocities (the default guidance's cruise speed)
+
+    def __post_init__(self) -> None:
+        for k in ("radius_m", "time_horizon_s", "neighbour_dist_m", "max_speed_m_s"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and v > 0 and v < float("inf")):
+                raise ValueError(f"OrcaParams.{k} must be finite and > 0, got {v!r}")
+        if not (isinstance(self.max_neighbours, int) and self.max_neighbours >= 1):
+            raise ValueError(f"OrcaParams.max_neighbours must be an int >= 1, got {self.max_neighbours!r}")

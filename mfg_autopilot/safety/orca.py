@@ -1,0 +1,197 @@
+"""The ``orca`` mode: optimal reciprocal collision avoidance as a baseline controller bank.
+
+ORCA (J. van den Berg, S. J. Guy, M. Lin, D. Manocha, *Reciprocal n-Body Collision Avoidance*,
+ISRR 2009 / STAR 2011), computed by the original RVO2 library through its Python bindings
+(``pyrvo``; the only module of the project that imports it). Communication-free: each vehicle
+uses only its own observed state and what its onboard proximity sensor sees
+(``Observation.sensed``, the same sensor and range, ``preset.backstop.sensor_range_m``, as the
+default preset's backstop). No t = 0 exchange, no gossip: the communication metric is 0.
+
+Per control step t_k, for each bank row i (own state s_i = [r_i, v_i]):
+
+1. preferred velocity towards the own destination d_i (the default guidance's braking profile,
+   ``guidance.planner.goal_acc``):
+       v_pref = -rho_hat * min(v_cruise, sqrt(2 a_brake rho), k_r rho),   rho = r_i - d_i;
+2. neighbours: the sensed vehicles closer than ``OrcaParams.neighbour_dist_m``, the
+   ``max_neighbours`` nearest (ties by vehicle id, then sensor order) - RVO2's own rule,
+   applied here so that each row's set is fixed before RVO2 sees it;
+3. v_new = ORCA's velocity: the one closest to v_pref within |v| <= max_speed and the
+   half-planes ORCA_ij^tau of those neighbours (their sensed positions and velocities; each
+   vehicle a disc of ``radius_m``; time horizon tau; RVO2's 2-D linear programme);
+4. the acceleration that reaches v_new in one control period under the model of eq. 9
+   (``paper/model.py``: dv/dt = a - c0 (v - v_o)):
+       a = (v_new - v_i) / dt + c0 (v_i - v_o),   capped at |a| <= learner.acc_max_m_s2.
+
+ORCA assumes a vehicle takes any velocity up to max_speed at once; ours change velocity by at
+most acc_max dt per step (1 m/s with the default preset), so ORCA's guarantee does not carry
+over: the radius (0.2 m per vehicle against the 0.1 m collision distance) is the margin, and the
+measured separations are in docs/benchmarks.md ("ORCA baseline").
+
+Destinations: each vehicle flies to its own mission destination (``destination_site_m``). ORCA
+has no t = 0 exchange, so it has no slot rule: the default controller's slot (site + own start
+offset from the centroid of the group sharing the site, ``guidance.planner.slots_from_sites``)
+needs every group member's start position, which only communication gives (the sensor sees 10 m,
+a group spans more). When a group shares one site point, ORCA crowds its vehicles around that
+point (reciprocal avoidance keeps them ``2 radius_m`` apart, so they cannot all be within the
+1 m arrival tolerance); per-vehicle destinations (``circle``, or a mission with one site per
+vehicle) do not have that limitation.
+
+Exactness of the bank: row i's velocity is computed by its own RVO2 simulator holding only the
+own vehicle (at the origin) and its selected neighbours (at their positions relative to it), so a
+bank of n rows gives, row by row, the same numbers as n banks of one (``tests/test_orca.py``). One
+simulator for the whole bank would not: RVO2 stores positions in float32 (1e-5 m at 100 m), a
+simulator shared by every vehicle would put each at its own observed state where its neighbours
+sense a quantised one, and RVO2 selects neighbours from everything it holds. Rows that sense no
+neighbour skip RVO2: with no half-plane its linear programme is v_pref capped at max_speed.
+A simulator is built per row and step, never reused: RVO2's ``clearAgents`` leaves dangling
+agent pointers in its k-d tree (RVOSimulator.cc, KdTree::buildAgentTree).
+
+Shapes: own states (n, 4) [x_m, y_m, vx_m_s, vy_m_s]; velocities and accelerations (n, 2).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mfg_autopilot.interface import Neighbours, Observation, StepInfo
+from mfg_autopilot.paper.model import cap_norm
+from mfg_autopilot.paper.params import Preset
+from mfg_autopilot.safety.params import OrcaParams
+
+__all__ = ["OrcaController", "preferred_velocity_m_s", "select_neighbours", "orca_velocities_m_s"]
+
+
+def _pyrvo():
+    try:
+        import pyrvo
+    except ImportError as e:        # pragma: no cover - ./dev installs it
+        raise ImportError("the orca mode needs pyrvo (RVO2's bindings): ./dev installs it, "
+                          "or pip install --no-deps pyrvo==0.4.3") from e
+    return pyrvo
+
+
+def preferred_velocity_m_s(own: np.ndarray, dest_m: np.ndarray, v_cruise_m_s: float, a_brake_m_s2: float,
+                           k_r_per_s: float) -> np.ndarray:
+    """v_pref (n, 2) towards dest_m (n, 2): -rho_hat min(v_cruise, sqrt(2 a_brake rho), k_r rho)
+    with rho = r - dest (the default guidance's profile, guidance.planner.goal_acc)."""
+    r = own[:, 0:2] - dest_m
+    rho = np.linalg.norm(r, axis=1)
+    speed = np.minimum(np.minimum(v_cruise_m_s, np.sqrt(2.0 * a_brake_m_s2 * rho)), k_r_per_s * rho)
+    return -r * (speed / np.maximum(rho, 1e-12))[:, None]
+
+
+def select_neighbours(own: np.ndarray, sensed: Neighbours, neighbour_dist_m: float, max_neighbours: int) -> np.ndarray:
+    """Indices into ``sensed`` of each row's ORCA neighbours, grouped by owner row and, within a row,
+    nearest first: the sensed vehicles with |r_j - r_i| < neighbour_dist_m, at most max_neighbours
+    per row, ties broken by vehicle id (if given) then by position in ``sensed`` (m',)."""
+    m = sensed.states.shape[0]
+    if m == 0:
+        return np.zeros(0, dtype=np.int64)
+    owner = np.asarray(sensed.owner, dtype=np.int64)
+    d = sensed.states[:, 0:2] - own[owner, 0:2]
+    d2 = d[:, 0] ** 2 + d[:, 1] ** 2
+    cand = np.flatnonzero(d2 < neighbour_dist_m * neighbour_dist_m)
+    if cand.size == 0:
+        return cand
+    ids = np.asarray(sensed.ids, dtype=np.int64)[cand] if sensed.ids is not None else np.zeros(cand.size, dtype=np.int64)
+    order = cand[np.lexsort((cand, ids, d2[cand], owner[cand]))]
+    ow = owner[order]
+    start = np.flatnonzero(np.r_[True, ow[1:] != ow[:-1]])
+    rank = np.arange(ow.size) - np.repeat(start, np.diff(np.r_[start, ow.size]))
+    return order[rank < max_neighbours]
+
+
+def orca_velocities_m_s(own: np.ndarray, v_pref_m_s: np.ndarray, sensed: Neighbours, p: OrcaParams,
+                        dt_s: float) -> np.ndarray:
+    """ORCA's new velocity of each row (n, 2) (steps 2 and 3 of the module docstring), RVO2 per row
+    on the own vehicle at the origin and its selected neighbours relative to it."""
+    n = own.shape[0]
+    v_new = cap_norm(np.asarray(v_pref_m_s, dtype=float), p.max_speed_m_s)     # no neighbour: the LP's answer
+    sel = select_neighbours(own, sensed, p.neighbour_dist_m, p.max_neighbours)
+    if sel.size == 0:
+        return v_new
+    pyrvo = _pyrvo()
+    owner = np.asarray(sensed.owner, dtype=np.int64)[sel]
+    rel = (sensed.states[sel, 0:2] - own[owner, 0:2]).tolist()
+    vel = sensed.states[sel, 2:4].tolist()
+    rows = np.flatnonzero(np.bincount(owner, minlength=n))
+    bounds = np.searchsorted(owner, np.r_[rows, n])
+    # the own agent keeps every listed neighbour (neighborDist well beyond neighbour_dist_m, as RVO2 compares float32
+    # squares; maxNeighbors = the row's count); the neighbour agents search none (their own velocities are not used)
+    nd, tau, r, vmax = p.neighbour_dist_m + 1.0, p.time_horizon_s, p.radius_m, p.max_speed_m_s
+    for k, i in enumerate(rows):
+        lo, hi = int(bounds[k]), int(bounds[k + 1])
+        sim = pyrvo.RVOSimulator()
+        sim.set_time_step(dt_s)
+        sim.add_agent((0.0, 0.0), nd, hi - lo, tau, tau, r, vmax, (float(own[i, 2]), float(own[i, 3])))
+        for j in range(lo, hi):
+            sim.add_agent(rel[j], 0.0, 0, tau, tau, r, vmax, vel[j])
+        sim.set_agent_pref_velocity(0, (float(v_pref_m_s[i, 0]), float(v_pref_m_s[i, 1])))
+        sim.do_step()
+        v_new[i] = sim.get_agent_velocity(0).to_tuple()
+    return v_new
+
+
+class OrcaController:
+    """A bank of n ORCA controllers (interface.Controller; module docstring). Built by
+    ``presets.make_controller("orca", preset, destination_site_m)`` from a preset with ``guidance``
+    (cruise speed, braking), ``backstop`` (sensor range) and ``orca`` (:class:`OrcaParams`)
+    parameters - the ``default`` preset."""
+
+    mode = "orca"
+    uses_t0_exchange = False
+
+    def __init__(self, preset: Preset, destination_site_m: np.ndarray, params: OrcaParams | None = None) -> None:
+        missing = [k for k in ("guidance", "backstop") if not hasattr(preset, k)]
+        if missing:
+            raise ValueError(f"the orca controller needs a preset with {' and '.join(missing)} parameters "
+                             f"(the default preset), got {getattr(preset, 'name', preset)!r}")
+        p = params if params is not None else getattr(preset, "orca", OrcaParams())
+        if not isinstance(p, OrcaParams):
+            raise ValueError(f"params must be OrcaParams, got {type(p).__name__}")
+        sensor_range_m = float(preset.backstop.sensor_range_m)
+        if p.neighbour_dist_m > sensor_range_m:
+            raise ValueError(f"OrcaParams.neighbour_dist_m ({p.neighbour_dist_m} m) must not exceed the proximity sensor's "
+                             f"range ({sensor_range_m} m): ORCA sees only sensed vehicles")
+        if not (preset.dt_s > 0 and np.isfinite(preset.dt_s)):
+            raise ValueError(f"the preset's dt_s must be finite and > 0, got {preset.dt_s}")
+        dest = np.asarray(destination_site_m, dtype=float)
+        if dest.ndim != 2 or dest.shape[1] != 2 or dest.shape[0] < 1 or not np.all(np.isfinite(dest)):
+            raise ValueError(f"destination_site_m must be a finite (n, 2) array with n >= 1, got shape {dest.shape}")
+        self.preset = preset
+        self.params = p
+        self.sensor_range_m = sensor_range_m       # the simulator and the runtime deliver Observation.sensed within it
+        self._dest = dest.copy()
+        self._w = np.zeros((self._dest.shape[0], 1))
+        self.backstop_active = np.zeros(self.n, dtype=bool)
+
+    @property
+    def n(self) -> int:
+        return self._dest.shape[0]
+
+    @property
+    def destinations_m(self) -> np.ndarray:
+        """(n, 2) each row's mission destination (no slot rule: module docstring)."""
+        return self._dest
+
+    def exchange_t0(self, states, ids, own_index, sites_m) -> None:
+        """Not used: ORCA exchanges nothing (``uses_t0_exchange`` is False)."""
+
+    def step(self, obs: Observation) -> StepInfo:
+        """Steps 1-4 of the module docstring for every row of the bank."""
+        own = np.asarray(obs.own_states, dtype=float)
+        if own.shape != (self.n, 4):
+            raise ValueError(f"own_states must be ({self.n}, 4), got {own.shape}")
+        g, cost, dt = self.preset.guidance, self.preset.cost, self.preset.dt_s
+        v_pref = preferred_velocity_m_s(own, self._dest, g.v_cruise_m_s, g.a_brake_m_s2, g.k_r_per_s)
+        sensed = obs.sensed if obs.sensed is not None else Neighbours.empty()
+        v_new = orca_velocities_m_s(own, v_pref, sensed, self.params, dt)
+        v = own[:, 2:4]
+        a = (v_new - v) / dt + cost.c0_per_s * (v - cost.v_o[None, :])
+        a = cap_norm(a, self.preset.learner.acc_max_m_s2)
+        z = np.zeros(self.n, dtype=np.int64)
+        return StepInfo(a, z, np.zeros(self.n, dtype=bool), np.zeros(self.n), z)
+
+    def weights(self) -> dict[str, np.ndarray]:
+        """Nothing is learned: one zero column per row (the simulator logs row 0's)."""
+        return {"w_H": self._w}

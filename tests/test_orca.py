@@ -1,0 +1,143 @@
+"""The ``orca`` mode (mfg_autopilot/safety/orca.py): ORCA over the proximity sensor, no communication."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mfg_autopilot.guidance.params import DEFAULT
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.paper.params import PAPER
+from mfg_autopilot.presets import MODES, make_controller
+from mfg_autopilot.safety.orca import OrcaController, orca_velocities_m_s, preferred_velocity_m_s, select_neighbours
+from mfg_autopilot.safety.params import OrcaParams
+from mfg_swarm.metrics import COLLISION_DISTANCE_M, collisions
+from mfg_swarm.scenarios import Scenario, make_scenario
+from mfg_swarm.sim import SimConfig, simulate
+
+A_MAX = DEFAULT.learner.acc_max_m_s2
+
+
+def _fly(sc: Scenario, steps: int, seed: int = 0):
+    return simulate(SimConfig(sc, "orca", DEFAULT, seed=seed, steps=steps), progress=False)
+
+
+def _snapshot(rng: np.random.Generator, n: int, box_m: float) -> tuple[np.ndarray, Neighbours]:
+    """n random states in a box and every pair within the sensor range, both directions (exact states)."""
+    states = np.concatenate([rng.uniform(-box_m, box_m, (n, 2)), rng.uniform(-4.0, 4.0, (n, 2))], axis=1)
+    d = np.linalg.norm(states[:, None, 0:2] - states[None, :, 0:2], axis=2)
+    owner, other = np.nonzero((d <= DEFAULT.backstop.sensor_range_m) & ~np.eye(n, dtype=bool))
+    return states, Neighbours(states[other], owner, other)
+
+
+def test_orca_is_a_mode_of_the_default_preset_only():
+    assert "orca" in MODES
+    ctrl = make_controller("orca", DEFAULT, np.zeros((3, 2)))
+    assert isinstance(ctrl, OrcaController) and ctrl.mode == "orca" and ctrl.n == 3
+    assert ctrl.uses_t0_exchange is False and ctrl.sensor_range_m == DEFAULT.backstop.sensor_range_m
+    assert ctrl.weights()["w_H"].shape == (3, 1)
+    with pytest.raises(ValueError, match="no controller for preset 'paper' in mode 'orca'"):
+        make_controller("orca", PAPER, np.zeros((3, 2)))
+
+
+def test_head_on_pair_avoids_and_both_arrive():
+    """Given two vehicles 60 m apart flying to each other's start on one line (wind noise only breaks
+    the symmetry), when flown, then they pass > 2 x 0.1 m apart and both arrive."""
+    sc = Scenario("head-on", np.array([[-30.0, 0.0], [30.0, 0.0]]), np.array([[30.0, 0.0], [-30.0, 0.0]]),
+                  np.array([0, 1]), np.zeros((2, 2)))
+    traj, m = _fly(sc, steps=100)
+    assert m["collision_pairs"] == 0 and m["min_pair_distance_m"] > 2 * COLLISION_DISTANCE_M, m["min_pair_distance_m"]
+    assert m["arrived_fraction"] == 1.0 and m["arrival_time_s"] < 30.0
+    assert m["comm_states_per_uav"] == 0.0
+
+
+@pytest.mark.parametrize("n,seed", [(8, 0), (12, 1), (14, 2)])
+def test_circle_to_antipodes_has_no_collided_pair(n, seed):
+    """The classic reciprocal benchmark: N vehicles on a circle each fly to its antipode. (Measured: from
+    N = 16 some seeds collide - the acceleration limit; docs/benchmarks.md, "ORCA baseline".)"""
+    traj, m = _fly(make_scenario("circle", n, seed), steps=120, seed=seed)
+    assert collisions(traj.pos_m)["collision_pairs"] == 0 and m["collision_pairs"] == 0
+    assert m["arrived_fraction"] == 1.0
+
+
+def test_acceleration_never_exceeds_the_cap():
+    """Given a dense crowd (0.5 m grid flying to one point: ORCA's velocities are far out of one
+    step's reach), then every commanded acceleration is within acc_max, in the bank's output and
+    in the flown trajectory (float32 on the link)."""
+    sc = make_scenario("dense", 36, 0)
+    ctrl = make_controller("orca", DEFAULT, sc.destination_m)
+    rng = np.random.default_rng(3)
+    states = np.concatenate([sc.initial_pos_m, rng.uniform(-4.0, 4.0, (36, 2))], axis=1)
+    d = np.linalg.norm(states[:, None, 0:2] - states[None, :, 0:2], axis=2)
+    owner, other = np.nonzero((d <= 10.0) & ~np.eye(36, dtype=bool))
+    info = ctrl.step(Observation(0, 0.0, states, None, Neighbours(states[other], owner, other)))
+    nrm = np.linalg.norm(info.acc_m_s2, axis=1)
+    assert np.all(nrm <= A_MAX * (1 + 1e-12)) and np.max(nrm) > 0.99 * A_MAX     # the cap is reached, not exceeded
+    traj, _ = _fly(sc, steps=60)
+    assert np.max(np.linalg.norm(traj.acc_m_s2, axis=2)) <= A_MAX * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("max_neighbours", [5, 30])
+def test_bank_of_n_equals_n_banks_of_one(max_neighbours):
+    """Each row's action depends only on its own state and what it senses: a bank holding every vehicle
+    gives, row by row, exactly what n vehicle processes (banks of one, neighbours listed in another order)
+    give - with and without the max_neighbours truncation."""
+    rng = np.random.default_rng(18)
+    n = 40
+    states, sensed = _snapshot(rng, n, 12.0)
+    dest = rng.uniform(-50.0, 50.0, (n, 2))
+    preset = replace(DEFAULT, orca=OrcaParams(max_neighbours=max_neighbours))
+    bank = make_controller("orca", preset, dest)
+    a_bank = bank.step(Observation(0, 0.0, states, None, sensed)).acc_m_s2
+    assert np.count_nonzero(sensed.counts(n)) == n                 # every row has neighbours: RVO2 ran for each
+    assert np.any(sensed.counts(n) > max_neighbours) == (max_neighbours == 5)
+    for i in range(n):
+        mine = np.flatnonzero(sensed.owner == i)
+        mine = mine[rng.permutation(mine.size)]
+        one = make_controller("orca", preset, dest[i:i + 1])
+        obs = Observation(0, 0.0, states[i:i + 1], None, Neighbours(sensed.states[mine], np.zeros(mine.size, np.int64),
+                                                                    sensed.ids[mine]))
+        np.testing.assert_array_equal(one.step(obs).acc_m_s2[0], a_bank[i])
+
+
+def test_neighbour_selection_is_the_nearest_within_range_per_row():
+    own = np.array([[0.0, 0.0, 0.0, 0.0], [100.0, 0.0, 0.0, 0.0]])
+    st = np.array([[3.0, 0, 0, 0], [1.0, 0, 0, 0], [2.0, 0, 0, 0], [10.5, 0, 0, 0], [101.0, 0, 0, 0]])
+    sensed = Neighbours(st, np.array([0, 0, 0, 0, 1]), np.array([5, 6, 7, 8, 9]))
+    assert select_neighbours(own, sensed, 10.0, 2).tolist() == [1, 2, 4]     # row 0: the 2 nearest; 10.5 m is beyond
+    assert select_neighbours(own, Neighbours.empty(), 10.0, 2).size == 0
+    # no neighbour: ORCA's answer is the preferred velocity (capped at max_speed)
+    v = preferred_velocity_m_s(own, np.array([[50.0, 0.0], [100.0, 0.5]]), 4.0, 0.5, 0.4)
+    np.testing.assert_allclose(v, [[4.0, 0.0], [0.0, 0.2]])
+    np.testing.assert_array_equal(orca_velocities_m_s(own, v, Neighbours.empty(), OrcaParams(), 0.5), v)
+
+
+def test_sim_cli_flies_orca_without_communication(tmp_path):
+    from mfg_swarm.cli import main
+
+    out = tmp_path / "orca"
+    assert main(["sim", "--mode", "orca", "--scenario", "crossing", "--n", "20", "--seed", "1", "--steps", "200",
+                 "--out", str(out), "--no-progress"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["mode"] == "orca" and m["n"] == 20 and m["range_m"] is None
+    assert m["comm_states_per_uav"] == 0.0
+    assert m["collision_pairs"] == 0
+
+
+def test_bad_parameters_are_clear_errors():
+    for kw, msg in [(dict(radius_m=0.0), "radius_m"), (dict(time_horizon_s=-1.0), "time_horizon_s"),
+                    (dict(max_speed_m_s=float("inf")), "max_speed_m_s"), (dict(max_neighbours=0), "max_neighbours"),
+                    (dict(max_neighbours=2.5), "max_neighbours"), (dict(neighbour_dist_m=float("nan")), "neighbour_dist_m")]:
+        with pytest.raises(ValueError, match=msg):
+            OrcaParams(**kw)
+    with pytest.raises(ValueError, match="must not exceed the proximity sensor's range"):
+        OrcaController(DEFAULT, np.zeros((2, 2)), OrcaParams(neighbour_dist_m=20.0))
+    with pytest.raises(ValueError, match="guidance and backstop"):
+        OrcaController(PAPER, np.zeros((2, 2)))
+    with pytest.raises(ValueError, match=r"\(n, 2\)"):
+        OrcaController(DEFAULT, np.zeros(3))
+    ctrl = OrcaController(replace(DEFAULT, orca=OrcaParams(radius_m=0.3)), np.zeros((2, 2)))
+    assert ctrl.params.radius_m == 0.3
+    with pytest.raises(ValueError, match=r"own_states must be \(2, 4\)"):
+        ctrl.step(Observation(0, 0.0, np.zeros((3, 4))))
