@@ -67,7 +67,15 @@ def animate_run(run_dir: Path, *, fps: float = 10.0, max_frames: int = 200, mp4:
     allp = np.concatenate([pos[fin], dest])
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     pad = 0.06 * max(float(np.max(hi - lo)), 1.0)
-    fig, ax = plt.subplots(figsize=(5.0, 5.0))
+    fig, (ax, zx) = plt.subplots(1, 2, figsize=(8.0, 4.2))
+    # the close-up: a window of fixed size (the largest spread of the swarm over the flight) that follows its centre
+    spans = [np.ptp(pos[k][fin[k]], axis=0).max() for k in range(T1) if fin[k].any()]
+    half = 0.6 * max(max(spans, default=2.0), 2.0)
+    centre = np.array([np.nanmean(np.where(fin[k][:, None], pos[k], np.nan), axis=0) for k in range(T1)])
+    zx.set_aspect("equal")
+    zx.set_xlabel("y (east), m")
+    zx.set_title(f"close-up, {2 * half:.0f} m wide", fontsize=9)
+    zx.scatter(dest[:, 1], dest[:, 0], marker="x", s=14, color="k", zorder=2)
     ax.set_xlim(lo[1] - pad, hi[1] + pad)
     ax.set_ylim(lo[0] - pad, hi[0] + pad)
     ax.set_aspect("equal")
@@ -78,9 +86,13 @@ def animate_run(run_dir: Path, *, fps: float = 10.0, max_frames: int = 200, mp4:
     trails = [ax.plot([], [], lw=0.6, color=colours[i], alpha=0.6)[0] for i in range(n)]
     dots = ax.scatter(pos[0, :, 1], pos[0, :, 0], s=16, c=colours, zorder=3)
     link, = ax.plot([], [], color="C3", lw=1.5, zorder=4)
+    zdots = zx.scatter(pos[0, :, 1], pos[0, :, 0], s=16, c=colours, zorder=3)
+    zlink, = zx.plot([], [], color="C3", lw=1.5, zorder=4)
+    ztrails = [zx.plot([], [], lw=0.6, color=colours[i], alpha=0.6)[0] for i in range(n)]
     text = ax.text(0.02, 0.98, "", transform=ax.transAxes, va="top", ha="left", fontsize=8, family="monospace",
                    bbox=dict(facecolor="white", alpha=0.8, edgecolor="0.8"))
-    ax.set_title(f"{m.get('scenario', '')} {m.get('mode', '')}, N = {n} ({m.get('path', 'sim')})", fontsize=9)
+    fig.suptitle(f"{m.get('scenario', '')} {m.get('mode', '')}, N = {n} ({m.get('path', 'sim')}): the closest pair in red",
+                 fontsize=9)
     ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
 
@@ -88,13 +100,20 @@ def animate_run(run_dir: Path, *, fps: float = 10.0, max_frames: int = 200, mp4:
         for i, ln in enumerate(trails):
             ln.set_data(pos[: k + 1, i, 1], pos[: k + 1, i, 0])
         dots.set_offsets(np.column_stack([pos[k, :, 1], pos[k, :, 0]]))
+        for i, ln in enumerate(ztrails):
+            ln.set_data(pos[: k + 1, i, 1], pos[: k + 1, i, 0])
+        zdots.set_offsets(np.column_stack([pos[k, :, 1], pos[k, :, 0]]))
+        if np.all(np.isfinite(centre[k])):
+            zx.set_xlim(centre[k, 1] - half, centre[k, 1] + half)
+            zx.set_ylim(centre[k, 0] - half, centre[k, 0] + half)
         if pair[k, 0] >= 0:
             i, j = pair[k]
             link.set_data([pos[k, i, 1], pos[k, j, 1]], [pos[k, i, 0], pos[k, j, 0]])
+            zlink.set_data([pos[k, i, 1], pos[k, j, 1]], [pos[k, i, 0], pos[k, j, 0]])
         text.set_text(f"t = {k * dt:6.1f} s   step {k}/{T1 - 1}\n"
                       f"min separation now {dmin[k]:6.2f} m, so far {dmin_so_far[k]:6.2f} m\n"
                       f"in slot {int(inside[k].sum())}/{n}")
-        return [*trails, dots, link, text]
+        return [*trails, dots, link, text, *ztrails, zdots, zlink]
 
     anim = FuncAnimation(fig, draw, frames=[int(k) for k in steps], blit=False)
     out = [run_dir / "flight.gif"]
