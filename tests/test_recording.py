@@ -224,3 +224,15 @@ def test_convert_refuses_a_damaged_tlog_and_leaves_nothing(swarm_run, tmp_path, 
     assert proc.returncode != 0
     assert "vehicle2.tlog" in proc.stderr and word in proc.stderr, proc.stderr
     assert _no_leftovers(d) == []
+
+
+def test_the_layout_in_docs_is_the_generated_one_and_names_only_recorded_topics(paper_sim):
+    import re
+
+    from mfg_swarm.foxglove_layout import layout_json
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "foxglove_layout.json").read_text()
+    assert doc == layout_json(9), "docs/foxglove_layout.json is stale: python -m mfg_swarm.foxglove_layout --out it"
+    msgs, _, _ = read_mcap(paper_sim[0] / "flight.mcap")
+    named = set(re.findall(r'"(/(?:uav\d+|swarm|log)[^".]*)', doc))
+    assert named and named <= set(msgs), named - set(msgs)
