@@ -3,7 +3,8 @@
 One frame per control step (every k-th step when the flight has more than ``max_frames`` instants:
 k = ceil((T + 1) / max_frames), the last instant always included). Each frame shows the swarm in the
 swarm frame (north up, east right), every UAV's track so far, the destination slots, the closest pair
-of that instant, and the time, the minimum separation so far and how many UAVs are in their slot.
+of that instant (red), a close-up that follows that pair, and the time, the minimum separation (now and
+so far, between instants) and how many UAVs are in their slot (within 1 m, metrics.ARRIVAL_TOLERANCE_M).
 """
 
 from __future__ import annotations
@@ -67,15 +68,24 @@ def animate_run(run_dir: Path, *, fps: float = 10.0, max_frames: int = 200, mp4:
     allp = np.concatenate([pos[fin], dest])
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     pad = 0.06 * max(float(np.max(hi - lo)), 1.0)
-    fig, (ax, zx) = plt.subplots(1, 2, figsize=(8.0, 4.2))
-    # the close-up: a window of fixed size (the largest spread of the swarm over the flight) that follows its centre
-    spans = [np.ptp(pos[k][fin[k]], axis=0).max() for k in range(T1) if fin[k].any()]
-    half = 0.6 * max(max(spans, default=2.0), 2.0)
-    centre = np.array([np.nanmean(np.where(fin[k][:, None], pos[k], np.nan), axis=0) for k in range(T1)])
-    zx.set_aspect("equal")
-    zx.set_xlabel("y (east), m")
-    zx.set_title(f"close-up, {2 * half:.0f} m wide", fontsize=9)
-    zx.scatter(dest[:, 1], dest[:, 0], marker="x", s=14, color="k", zorder=2)
+    span = 0.5 * float(np.max(hi - lo)) + pad           # a square overview: equal aspect fills the axes
+    mid = 0.5 * (lo + hi)
+    lo, hi, pad = mid - span, mid + span, 0.0
+    # the close-up follows the closest pair of each instant (its midpoint), at a fixed width: four times the largest
+    # per-instant minimum separation, at least 3 m
+    finite_d = dmin[np.isfinite(dmin)]
+    half = 0.5 * max(3.0, 4.0 * float(finite_d.max()) if finite_d.size else 3.0)
+    centre = np.full((T1, 2), np.nan)
+    ok = pair[:, 0] >= 0
+    centre[ok] = 0.5 * (pos[ok, pair[ok, 0]] + pos[ok, pair[ok, 1]])
+    zoom = 2 * half < 0.2 * 2 * span     # a close-up only where the overview cannot show the pair
+    fig, axes = plt.subplots(1, 2 if zoom else 1, figsize=(8.0 if zoom else 4.6, 4.6), squeeze=False)
+    ax, zx = axes[0, 0], (axes[0, 1] if zoom else None)
+    if zoom:
+        zx.set_aspect("equal")
+        zx.set_xlabel("y (east), m")
+        zx.set_title(f"close-up on the closest pair, {2 * half:.0f} m wide", fontsize=9)
+        zx.scatter(dest[:, 1], dest[:, 0], marker="x", s=14, color="k", zorder=2)
     ax.set_xlim(lo[1] - pad, hi[1] + pad)
     ax.set_ylim(lo[0] - pad, hi[0] + pad)
     ax.set_aspect("equal")
@@ -86,15 +96,14 @@ def animate_run(run_dir: Path, *, fps: float = 10.0, max_frames: int = 200, mp4:
     trails = [ax.plot([], [], lw=0.6, color=colours[i], alpha=0.6)[0] for i in range(n)]
     dots = ax.scatter(pos[0, :, 1], pos[0, :, 0], s=16, c=colours, zorder=3)
     link, = ax.plot([], [], color="C3", lw=1.5, zorder=4)
-    zdots = zx.scatter(pos[0, :, 1], pos[0, :, 0], s=16, c=colours, zorder=3)
-    zlink, = zx.plot([], [], color="C3", lw=1.5, zorder=4)
-    ztrails = [zx.plot([], [], lw=0.6, color=colours[i], alpha=0.6)[0] for i in range(n)]
-    text = ax.text(0.02, 0.98, "", transform=ax.transAxes, va="top", ha="left", fontsize=8, family="monospace",
-                   bbox=dict(facecolor="white", alpha=0.8, edgecolor="0.8"))
+    zdots = zx.scatter(pos[0, :, 1], pos[0, :, 0], s=16, c=colours, zorder=3) if zoom else None
+    zlink = zx.plot([], [], color="C3", lw=1.5, zorder=4)[0] if zoom else None
+    ztrails = [zx.plot([], [], lw=0.6, color=colours[i], alpha=0.6)[0] for i in range(n)] if zoom else []
+    text = fig.text(0.5, 0.925, "", va="top", ha="center", fontsize=8, family="monospace")
     fig.suptitle(f"{m.get('scenario', '')} {m.get('mode', '')}, N = {n} ({m.get('path', 'sim')}): the closest pair in red",
                  fontsize=9)
     ax.legend(loc="lower right", fontsize=7)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 0.85))
 
     def draw(k: int):
         for i, ln in enumerate(trails):
@@ -102,18 +111,19 @@ def animate_run(run_dir: Path, *, fps: float = 10.0, max_frames: int = 200, mp4:
         dots.set_offsets(np.column_stack([pos[k, :, 1], pos[k, :, 0]]))
         for i, ln in enumerate(ztrails):
             ln.set_data(pos[: k + 1, i, 1], pos[: k + 1, i, 0])
-        zdots.set_offsets(np.column_stack([pos[k, :, 1], pos[k, :, 0]]))
-        if np.all(np.isfinite(centre[k])):
+        if zoom:
+            zdots.set_offsets(np.column_stack([pos[k, :, 1], pos[k, :, 0]]))
+        if zoom and np.all(np.isfinite(centre[k])):    # the closest pair's midpoint
             zx.set_xlim(centre[k, 1] - half, centre[k, 1] + half)
             zx.set_ylim(centre[k, 0] - half, centre[k, 0] + half)
         if pair[k, 0] >= 0:
             i, j = pair[k]
             link.set_data([pos[k, i, 1], pos[k, j, 1]], [pos[k, i, 0], pos[k, j, 0]])
-            zlink.set_data([pos[k, i, 1], pos[k, j, 1]], [pos[k, i, 0], pos[k, j, 0]])
-        text.set_text(f"t = {k * dt:6.1f} s   step {k}/{T1 - 1}\n"
-                      f"min separation now {dmin[k]:6.2f} m, so far {dmin_so_far[k]:6.2f} m\n"
-                      f"in slot {int(inside[k].sum())}/{n}")
-        return [*trails, dots, link, text, *ztrails, zdots, zlink]
+            if zoom:
+                zlink.set_data([pos[k, i, 1], pos[k, j, 1]], [pos[k, i, 0], pos[k, j, 0]])
+        text.set_text(f"t = {k * dt:5.1f} s (step {k}/{T1 - 1})   in slot {int(inside[k].sum())}/{n}\n"
+                      f"min separation {dmin[k]:5.2f} m (so far {dmin_so_far[k]:5.2f} m)")
+        return [*trails, dots, link, text, *ztrails] + ([zdots, zlink] if zoom else [])
 
     anim = FuncAnimation(fig, draw, frames=[int(k) for k in steps], blit=False)
     out = [run_dir / "flight.gif"]

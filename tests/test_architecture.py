@@ -88,6 +88,8 @@ def test_the_fixture_tree_keeps_every_contract(tmp_path):
     ("mfg_swarm/launcher.py", "import zenoh\n", "zenoh"),
     ("mfg_autopilot/paper/costs.py", "import numba\n", "numba"),
     ("mock_vehicle/plant.py", "import numba\n", "numba"),
+    ("mavlink_bridge/tlog.py", "import mcap.reader\n", "Foxglove and MCAP"),
+    ("mfg_autopilot/runtime/autopilot.py", "import foxglove\n", "Foxglove and MCAP"),
     ("mfg_autopilot/guidance/controller.py", "import socket\n", "no I/O"),
     ("mfg_autopilot/paper/learners.py", "import logging\n", "no I/O"),
     # a lazy (function-level) import that closes a circle
