@@ -38,7 +38,7 @@ from .flightlog import ControllerRecord, lockstep_grid, read_controller_log, rea
 from .results import Trajectories, compute_metrics, load_trajectories
 
 __all__ = ["RecordingError", "FlightRecord", "RecordingSummary", "load_run", "write_mcap", "record_run", "MCAP_NAME",
-           "collision_events", "backstop_intervals", "DEFAULT_ALTITUDE_AGL_M"]
+           "collision_events", "backstop_intervals", "DEFAULT_ALTITUDE_AGL_M", "RecordingChannels", "InstantPublisher"]
 
 MCAP_NAME = "flight.mcap"
 DEFAULT_ALTITUDE_AGL_M = 0.0
@@ -353,17 +353,20 @@ def _closest_pairs(pos_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if N < 2:
         return d, ij
     for k in range(T1):
-        dd, idx = cKDTree(pos_m[k]).query(pos_m[k], k=2)
+        rows = np.flatnonzero(np.isfinite(pos_m[k]).all(axis=1))      # a UAV without a position is left out
+        if rows.size < 2:
+            continue
+        dd, idx = cKDTree(pos_m[k, rows]).query(pos_m[k, rows], k=2)
         a = int(np.argmin(dd[:, 1]))
         d[k] = dd[a, 1]
-        ij[k] = sorted((a, int(idx[a, 1])))
+        ij[k] = sorted((int(rows[a]), int(rows[idx[a, 1]])))
     return d, ij
 
 
-class _Channels:
-    """The recording's channels in one Foxglove context (none of them reaches another sink)."""
+class RecordingChannels:
+    """The recording's channels in one Foxglove context (an MCAP writer's, or ``run --live``'s WebSocket server's)."""
 
-    def __init__(self, ctx, n: int) -> None:
+    def __init__(self, ctx, n: int, controllers: bool = False) -> None:
         import foxglove
         from foxglove.channels import EventChannel, LocationFixChannel, LogChannel, SceneUpdateChannel
 
@@ -379,15 +382,8 @@ class _Channels:
         self.collision = EventChannel("/events/collision", context=ctx)
         self.backstop = EventChannel("/events/backstop", context=ctx)
         self.log = LogChannel("/log", context=ctx)
-        self._ctx, self._js, self._n = ctx, js, n
-        self.controller: list = []
-        self.controller_log: list = []
-
-    def add_controllers(self) -> None:
-        from foxglove.channels import LogChannel
-
-        self.controller = [self._js(f"/uav{i}/controller", _CONTROLLER_SCHEMA) for i in range(self._n)]
-        self.controller_log = [LogChannel(f"/uav{i}/controller_log", context=self._ctx) for i in range(self._n)]
+        self.controller = [js(f"/uav{i}/controller", _CONTROLLER_SCHEMA) for i in range(n)] if controllers else []
+        self.controller_log = [LogChannel(f"/uav{i}/controller_log", context=ctx) for i in range(n)] if controllers else []
 
 
 class _Counter(dict):
@@ -395,13 +391,111 @@ class _Counter(dict):
         self[topic] = self.get(topic, 0) + k
 
 
+class InstantPublisher:
+    """Logs one control instant of the swarm on the per-instant topics (/uav<i>/fix, /uav<i>/state,
+    /uav<i>/setpoint, /swarm/scene, /swarm/separation): what flight.mcap holds at t_k and what ``run --live``
+    serves. ``channels``: a :class:`RecordingChannels`; positions in the swarm frame (NED at ``datum``)."""
+
+    def __init__(self, channels: "RecordingChannels", *, datum: GeodeticPoint, altitude_agl_m: np.ndarray, dest_m: np.ndarray,
+                 safety_radius_m: float, base_s: float = 0.0) -> None:
+        from foxglove.messages import Color, Pose, Quaternion, SpherePrimitive, Vector3
+
+        self.ch, self.n = channels, int(dest_m.shape[0])
+        self.frame, self.alt = SwarmFrame(datum), np.asarray(altitude_agl_m, dtype=float)
+        self.dest, self.r_m, self.base_s = np.asarray(dest_m, dtype=float), float(safety_radius_m), float(base_s)
+        self.colours = _palette(self.n)
+        r2 = 2.0 * self.r_m
+        self._q_id = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+        self._slots = [SpherePrimitive(pose=Pose(position=Vector3(x=float(self.dest[i, 1]), y=float(self.dest[i, 0]),
+                                                                  z=float(self.alt[i])), orientation=self._q_id),
+                                       size=Vector3(x=r2, y=r2, z=r2),
+                                       color=Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=0.35))
+                       for i, c in enumerate(self.colours)]
+        self.counts = _Counter()
+
+    def stamp(self, t_s: float):
+        from foxglove.messages import Timestamp
+
+        ns = _ns(self.base_s + t_s)
+        return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+    def log(self, t_s: float, pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray | None = None,
+            backstop_active: np.ndarray | None = None, collided_pairs_so_far: int | None = None) -> None:
+        """The instant t_s: pos_m, vel_m_s (N, 2); acc_m_s2 (N, 2) applied from t_s on (None at the last instant);
+        backstop_active (N,) bool or None. A UAV whose position is NaN is left out."""
+        from foxglove.messages import (ArrowPrimitive, Color, KeyValuePair, LinePrimitive, LocationFix, Point3, Pose,
+                                       Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive, Vector3)
+
+        ch, n, q_id = self.ch, self.n, self._q_id
+        lt, ts = _ns(self.base_s + t_s), self.stamp(t_s)
+        pos = np.asarray(pos_m, dtype=float)
+        vel = np.asarray(vel_m_s, dtype=float)
+        ned = np.column_stack([pos, -self.alt])
+        lat, lon, alt = self.frame.ned_to_geodetic(ned)
+        slot_dist = np.linalg.norm(pos - self.dest, axis=1)
+        ok = np.isfinite(pos).all(axis=1)
+        d, ij = _closest_pairs(pos[None])
+        r2 = 2.0 * self.r_m
+        entities = []
+        for i in np.flatnonzero(ok):
+            i = int(i)
+            c = self.colours[i]
+            colour = Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=1.0)
+            v_ne = vel[i]
+            speed = float(np.hypot(*v_ne))
+            ch.fix[i].log(LocationFix(timestamp=ts, frame_id=f"uav{i}", latitude=float(lat[i]), longitude=float(lon[i]),
+                                      altitude=float(alt[i]), velocity=Vector3(x=float(v_ne[1]), y=float(v_ne[0]), z=0.0),
+                                      color=colour), log_time=lt)
+            ch.state[i].log({"t_s": t_s, "x_north_m": float(pos[i, 0]), "y_east_m": float(pos[i, 1]),
+                             "vx_north_m_s": float(v_ne[0]), "vy_east_m_s": float(v_ne[1]), "speed_m_s": speed,
+                             "distance_to_slot_m": float(slot_dist[i])}, log_time=lt)
+            self.counts.add("/uav*/fix"); self.counts.add("/uav*/state")
+            if acc_m_s2 is not None:
+                a = acc_m_s2[i]
+                sp = {"t_s": t_s, "acc_north_m_s2": float(a[0]), "acc_east_m_s2": float(a[1]), "acc_norm_m_s2": float(np.hypot(*a))}
+                if backstop_active is not None:
+                    sp["backstop_active"] = bool(backstop_active[i])
+                ch.setpoint[i].log(sp, log_time=lt); self.counts.add("/uav*/setpoint")
+            p3 = Vector3(x=float(pos[i, 1]), y=float(pos[i, 0]), z=float(self.alt[i]))
+            yaw = math.atan2(float(v_ne[0]), float(v_ne[1]))        # ENU: angle from x (east) towards y (north)
+            arrows = [ArrowPrimitive(pose=Pose(position=p3, orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))),
+                                     shaft_length=0.7 * speed, shaft_diameter=0.05, head_length=0.3 * speed, head_diameter=0.15,
+                                     color=colour)] if speed > 1e-6 else []
+            entities.append(SceneEntity(timestamp=ts, frame_id="swarm_enu", id=f"uav{i}",
+                                        metadata=[KeyValuePair(key="speed_m_s", value=f"{speed:.3f}")],
+                                        spheres=[SpherePrimitive(pose=Pose(position=p3, orientation=q_id),
+                                                                 size=Vector3(x=r2, y=r2, z=r2), color=colour)],
+                                        arrows=arrows,
+                                        texts=[TextPrimitive(pose=Pose(position=p3, orientation=q_id), billboard=True, font_size=12.0,
+                                                             scale_invariant=True, color=colour, text=str(i))]))
+        entities.append(SceneEntity(timestamp=ts, frame_id="swarm_enu", id="slots", spheres=self._slots))
+        if ij[0, 0] >= 0 and np.isfinite(d[0]):
+            i, j = (int(x) for x in ij[0])
+            hot = Color(r=1.0, g=0.1, b=0.1, a=1.0) if d[0] < M.COLLISION_DISTANCE_M else Color(r=1.0, g=0.6, b=0.0, a=1.0)
+            pi = (float(pos[i, 1]), float(pos[i, 0]), float(self.alt[i]))
+            pj = (float(pos[j, 1]), float(pos[j, 0]), float(self.alt[j]))
+            mid = Vector3(x=(pi[0] + pj[0]) / 2, y=(pi[1] + pj[1]) / 2, z=(pi[2] + pj[2]) / 2)
+            entities.append(SceneEntity(timestamp=ts, frame_id="swarm_enu", id="closest_pair",
+                                        lines=[LinePrimitive(pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=q_id),
+                                                             thickness=3.0, scale_invariant=True, color=hot,
+                                                             points=[Point3(x=pi[0], y=pi[1], z=pi[2]), Point3(x=pj[0], y=pj[1], z=pj[2])])],
+                                        texts=[TextPrimitive(pose=Pose(position=mid, orientation=q_id), billboard=True, font_size=12.0,
+                                                             scale_invariant=True, color=hot, text=f"{d[0]:.2f} m ({i}, {j})")]))
+        ch.scene.log(SceneUpdate(entities=entities), log_time=lt); self.counts.add("/swarm/scene")
+        inside = (slot_dist <= M.ARRIVAL_TOLERANCE_M) & ok
+        sep = {"t_s": t_s, "min_separation_m": float(d[0]) if np.isfinite(d[0]) else None,
+               "closest_i": int(ij[0, 0]), "closest_j": int(ij[0, 1]), "arrived": int(inside.sum()),
+               "arrived_fraction": float(inside.mean())}
+        if collided_pairs_so_far is not None:
+            sep["collided_pairs_so_far"] = int(collided_pairs_so_far)
+        ch.separation.log(sep, log_time=lt); self.counts.add("/swarm/separation")
+
+
 def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
     """Write ``rec`` as MCAP (docs/formats.md, "flight.mcap") to ``out_path``, atomically: a temporary file in
     the same folder, renamed at the end; on any error nothing is left behind."""
     import foxglove
-    from foxglove.messages import (ArrowPrimitive, Color, Event, KeyValuePair, LinePrimitive, LocationFix, Log, LogLevel,
-                                   Point3, Pose, Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive,
-                                   Timestamp, Vector3)
+    from foxglove.messages import Event, KeyValuePair, Log, LogLevel
 
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -409,49 +503,31 @@ def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
     dt = float(traj.dt_s)
     base = 0.0 if rec.t0_unix_s is None else float(rec.t0_unix_s)
     t_s = np.arange(T + 1) * dt
-    pos, vel, acc = traj.pos_m, traj.vel_m_s, traj.acc_m_s2
-    frame = SwarmFrame(rec.datum)
-    ned = np.concatenate([pos, -rec.altitude_agl_m[None, :, None] * np.ones((T + 1, n, 1))], axis=2)
-    lat, lon, alt = frame.ned_to_geodetic(ned.reshape(-1, 3))
-    lat, lon, alt = (a.reshape(T + 1, n) for a in (lat, lon, alt))
-    slot_dist = np.linalg.norm(pos - traj.dest_m[None], axis=2)
-    inside = slot_dist <= M.ARRIVAL_TOLERANCE_M
-    dmin, cp = _closest_pairs(pos)
+    pos = traj.pos_m
     col_events = collision_events(pos) if n > 1 and np.all(np.isfinite(pos)) else []
     bs = backstop_intervals(rec.backstop_active) if rec.backstop_active is not None else []
-    colours = _palette(n)
-    r_m = rec.safety_radius_m
-    q_id = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
-
-    def stamp(t: float) -> Timestamp:
-        ns = _ns(base + t)
-        return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
-
-    def enu(p_ne: np.ndarray, up_m: float) -> Vector3:
-        return Vector3(x=float(p_ne[1]), y=float(p_ne[0]), z=float(up_m))
 
     fd, tmp = tempfile.mkstemp(prefix=f".{out_path.name}.", suffix=".tmp", dir=out_path.parent)
     os.close(fd)
-    counts = _Counter()
     writer = None
     try:
         ctx = foxglove.Context()
         writer = foxglove.open_mcap(tmp, allow_overwrite=True, context=ctx)
-        ch = _Channels(ctx, n)
-        if rec.controller_logs:
-            ch.add_controllers()
-        m = rec.metrics
+        ch = RecordingChannels(ctx, n, controllers=bool(rec.controller_logs))
+        pub = InstantPublisher(ch, datum=rec.datum, altitude_agl_m=rec.altitude_agl_m, dest_m=traj.dest_m,
+                               safety_radius_m=rec.safety_radius_m, base_s=base)
+        counts = pub.counts
         info = {"n": n, "steps": T, "dt_s": dt, "clock": "simulation" if rec.t0_unix_s is None else "wall",
                 "t0_unix_s": base, "datum": {"lat_deg": rec.datum.lat_deg, "lon_deg": rec.datum.lon_deg,
                                              "alt_amsl_m": rec.datum.alt_amsl_m},
-                "safety_radius_m": r_m, "source": rec.source, "frame": "swarm NED at the datum; scene in swarm_enu"}
+                "safety_radius_m": rec.safety_radius_m, "source": rec.source, "frame": "swarm NED at the datum; scene in swarm_enu"}
         writer.write_metadata("recording", {k: json.dumps(v) for k, v in info.items()})
-        writer.write_metadata("metrics", {k: json.dumps(v) for k, v in m.items()})
+        writer.write_metadata("metrics", {k: json.dumps(v) for k, v in rec.metrics.items()})
 
-        # events, stamped at their start (in time order with the rest only within a chunk; readers sort by log time)
+        # events, stamped at their start (readers sort by log time)
         step_logs: dict[int, list[tuple[str, LogLevel]]] = {}
         for i, j, k0, k1, dmin_ij in col_events:
-            ev = Event(start_time=stamp(t_s[k0]), end_time=stamp(t_s[min(k1 + 1, T)]),
+            ev = Event(start_time=pub.stamp(t_s[k0]), end_time=pub.stamp(t_s[min(k1 + 1, T)]),
                        metadata=[KeyValuePair(key="kind", value="collision"), KeyValuePair(key="uav_i", value=str(i)),
                                  KeyValuePair(key="uav_j", value=str(j)), KeyValuePair(key="first_step", value=str(k0)),
                                  KeyValuePair(key="last_step", value=str(k1)),
@@ -461,7 +537,7 @@ def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
                 (f"collision: UAVs {i} and {j} closer than {M.COLLISION_DISTANCE_M} m (closest {dmin_ij:.3f} m, "
                  f"steps {k0}-{k1})", LogLevel.Error))
         for v, k0, k1 in bs:
-            ev = Event(start_time=stamp(t_s[k0]), end_time=stamp(t_s[k1 + 1]),
+            ev = Event(start_time=pub.stamp(t_s[k0]), end_time=pub.stamp(t_s[k1 + 1]),
                        metadata=[KeyValuePair(key="kind", value="backstop"), KeyValuePair(key="uav", value=str(v)),
                                  KeyValuePair(key="first_step", value=str(k0)), KeyValuePair(key="last_step", value=str(k1)),
                                  KeyValuePair(key="steps", value=str(k1 - k0 + 1))])
@@ -469,76 +545,16 @@ def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
             step_logs.setdefault(k0, []).append(
                 (f"backstop: UAV {v} corrected its command for {k1 - k0 + 1} step(s) from step {k0}", LogLevel.Warning))
 
-        slot_spheres = [SpherePrimitive(pose=Pose(position=enu(traj.dest_m[i], rec.altitude_agl_m[i]), orientation=q_id),
-                                        size=Vector3(x=2 * r_m, y=2 * r_m, z=2 * r_m),
-                                        color=Color(r=float(colours[i, 0]), g=float(colours[i, 1]), b=float(colours[i, 2]), a=0.35))
-                        for i in range(n)]
-        collided = 0
         first_contact = sorted(e[2] for e in col_events)
+        collided = 0
         for k in range(T + 1):
-            t = float(t_s[k]); lt = _ns(base + t)
-            ok = np.isfinite(pos[k, :, 0])
-            entities = []
-            for i in range(n):
-                if not ok[i]:
-                    continue
-                c = colours[i]
-                colour = Color(r=float(c[0]), g=float(c[1]), b=float(c[2]), a=1.0)
-                v_ne = vel[k, i]
-                speed = float(np.hypot(*v_ne))
-                ch.fix[i].log(LocationFix(timestamp=stamp(t), frame_id=f"uav{i}", latitude=float(lat[k, i]),
-                                          longitude=float(lon[k, i]), altitude=float(alt[k, i]),
-                                          velocity=Vector3(x=float(v_ne[1]), y=float(v_ne[0]), z=0.0), color=colour),
-                              log_time=lt)
-                ch.state[i].log({"t_s": t, "x_north_m": float(pos[k, i, 0]), "y_east_m": float(pos[k, i, 1]),
-                                 "vx_north_m_s": float(v_ne[0]), "vy_east_m_s": float(v_ne[1]), "speed_m_s": speed,
-                                 "distance_to_slot_m": float(slot_dist[k, i])}, log_time=lt)
-                counts.add("/uav*/fix"); counts.add("/uav*/state")
-                if k < T:
-                    a = acc[k, i]
-                    sp = {"t_s": t, "acc_north_m_s2": float(a[0]), "acc_east_m_s2": float(a[1]),
-                          "acc_norm_m_s2": float(np.hypot(*a))}
-                    if rec.backstop_active is not None:
-                        sp["backstop_active"] = bool(rec.backstop_active[k, i])
-                    ch.setpoint[i].log(sp, log_time=lt); counts.add("/uav*/setpoint")
-                p3 = enu(pos[k, i], rec.altitude_agl_m[i])
-                yaw = math.atan2(float(v_ne[0]), float(v_ne[1]))        # ENU: angle from x (east) towards y (north)
-                arrows = [ArrowPrimitive(pose=Pose(position=p3, orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2),
-                                                                                      w=math.cos(yaw / 2))),
-                                         shaft_length=max(speed * 1.0 - 0.3 * speed, 0.0), shaft_diameter=0.05,
-                                         head_length=0.3 * speed, head_diameter=0.15, color=colour)] if speed > 1e-6 else []
-                entities.append(SceneEntity(timestamp=stamp(t), frame_id="swarm_enu", id=f"uav{i}",
-                                            metadata=[KeyValuePair(key="speed_m_s", value=f"{speed:.3f}")],
-                                            spheres=[SpherePrimitive(pose=Pose(position=p3, orientation=q_id),
-                                                                     size=Vector3(x=2 * r_m, y=2 * r_m, z=2 * r_m), color=colour)],
-                                            arrows=arrows,
-                                            texts=[TextPrimitive(pose=Pose(position=p3, orientation=q_id), billboard=True,
-                                                                 font_size=12.0, scale_invariant=True, color=colour, text=str(i))]))
-            entities.append(SceneEntity(timestamp=stamp(t), frame_id="swarm_enu", id="slots", spheres=slot_spheres))
-            if cp[k, 0] >= 0:
-                i, j = (int(x) for x in cp[k])
-                hot = Color(r=1.0, g=0.1, b=0.1, a=1.0) if dmin[k] < M.COLLISION_DISTANCE_M else Color(r=1.0, g=0.6, b=0.0, a=1.0)
-                pi = (float(pos[k, i, 1]), float(pos[k, i, 0]), float(rec.altitude_agl_m[i]))
-                pj = (float(pos[k, j, 1]), float(pos[k, j, 0]), float(rec.altitude_agl_m[j]))
-                mid = Vector3(x=(pi[0] + pj[0]) / 2, y=(pi[1] + pj[1]) / 2, z=(pi[2] + pj[2]) / 2)
-                entities.append(SceneEntity(timestamp=stamp(t), frame_id="swarm_enu", id="closest_pair",
-                                            lines=[LinePrimitive(pose=Pose(position=Vector3(x=0.0, y=0.0, z=0.0), orientation=q_id),
-                                                                 thickness=3.0, scale_invariant=True, color=hot,
-                                                                 points=[Point3(x=pi[0], y=pi[1], z=pi[2]),
-                                                                         Point3(x=pj[0], y=pj[1], z=pj[2])])],
-                                            texts=[TextPrimitive(pose=Pose(position=mid, orientation=q_id), billboard=True,
-                                                                 font_size=12.0, scale_invariant=True, color=hot,
-                                                                 text=f"{dmin[k]:.2f} m ({i}, {j})")]))
-            ch.scene.log(SceneUpdate(entities=entities), log_time=lt); counts.add("/swarm/scene")
             while collided < len(first_contact) and first_contact[collided] <= k:
                 collided += 1
-            ch.separation.log({"t_s": t, "min_separation_m": float(dmin[k]) if np.isfinite(dmin[k]) else None,
-                               "closest_i": int(cp[k, 0]), "closest_j": int(cp[k, 1]),
-                               "arrived": int(inside[k].sum()), "arrived_fraction": float(inside[k].mean()),
-                               "collided_pairs_so_far": collided}, log_time=lt)
-            counts.add("/swarm/separation")
+            pub.log(float(t_s[k]), pos[k], traj.vel_m_s[k], traj.acc_m_s2[k] if k < T else None,
+                    rec.backstop_active[k] if (rec.backstop_active is not None and k < T) else None, collided)
             for text, level in step_logs.get(k, []):
-                ch.log.log(Log(timestamp=stamp(t), level=level, message=text, name="mfg_swarm"), log_time=lt)
+                ch.log.log(Log(timestamp=pub.stamp(float(t_s[k])), level=level, message=text, name="mfg_swarm"),
+                           log_time=_ns(base + t_s[k]))
                 counts.add("/log")
         if rec.controller_logs:
             _write_controller_logs(rec, ch, counts, base)
@@ -557,7 +573,7 @@ def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
     return RecordingSummary(out_path, dict(counts), len(col_events), len(bs))
 
 
-def _write_controller_logs(rec: FlightRecord, ch: _Channels, counts: _Counter, base: float) -> None:
+def _write_controller_logs(rec: FlightRecord, ch: RecordingChannels, counts: _Counter, base: float) -> None:
     """Each controller's log: its step records' scalars on /uav<i>/controller (at the step's time), its start, events
     and end on /uav<i>/controller_log (foxglove.Log; at the step the event happened in a lockstep flight, at its wall
     time otherwise)."""
