@@ -88,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="controllers run at SCHED_FIFO priority P (1-99; needs CAP_SYS_NICE), as on a flight computer")
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-plot", action="store_true", help="do not draw the figures after the flight")
+    run.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                     help="serve the recording's topics live over the Foxglove WebSocket protocol on 127.0.0.1:PORT "
+                          "(default port 8765; 0: one the OS picks) while the swarm flies")
     rec = run.add_mutually_exclusive_group()
     rec.add_argument("--record", dest="record", action="store_true", default=True,
                      help="write flight.mcap after the flight (default; Foxglove: docs/formats.md)")
@@ -257,6 +260,20 @@ def _cmd_run(args) -> int:
     preset_by_name(args.preset)           # a bad preset name fails before any process starts
     if args.mode.startswith("hjb") and cfg.range_m is None:
         raise ValueError("HJB_d needs a radio range: give --range-m D or --power-mw P")
+    live = None
+    if args.live is not None:
+        import dataclasses
+
+        from .live import LiveView
+
+        live = LiveView([out / "controllers" / f"controller{i}.jsonl" for i in range(cfg.scenario.n)],
+                        dt_s=preset_by_name(args.preset).dt_s, dest_m=cfg.scenario.destination_m, lockstep=args.lockstep,
+                        port=args.live, datum=None if mission is None else mission.datum,
+                        altitude_agl_m=None if mission is None else mission.arrays()["altitude_agl_m"],
+                        safety_radius_m=(mission.safety_radius_m if mission is not None else args.safety_radius_m or 0.05))
+        cfg = dataclasses.replace(cfg, on_poll=live.poll)
+        print(f"live: {live.url} (Foxglove: Open connection -> Foxglove WebSocket -> {live.url}; "
+              f"layout docs/foxglove_layout.json)", file=sys.stderr, flush=True)
     clock = "lockstep" if args.lockstep else "real time"
     print(f"flying {args.n} vehicles ({args.mode}, preset {args.preset}, {args.scenario}, {clock}) as processes ...", file=sys.stderr)
     try:
@@ -264,6 +281,9 @@ def _cmd_run(args) -> int:
     except LaunchError as exc:
         print(f"mfg-swarm: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if live is not None:
+            live.close()
     summary = {k: metrics.get(k) for k in ("n", "mode", "range_m", "steps", "collision_pairs", "arrived_fraction",
                                             "arrival_time_s", "comm_states_per_uav", "motion_energy_per_uav", "wall_s", "partial")}
     print(json.dumps(summary))

@@ -25,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -99,6 +100,7 @@ class RunConfig:
     python: str = field(default_factory=lambda: sys.executable)
     mission: object | None = None             # a field mission (mfg_autopilot.mission.Mission); scenario = its swarm frame
     mission_file: Path | None = None          # ... and its file, handed to every controller
+    on_poll: Callable[[], object] | None = None   # called every 0.2 s while the swarm flies and once after (run --live)
 
 
 def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200) -> tuple[list[int], list[int]]:
@@ -521,6 +523,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         reason = "completed"
         while True:
             _controller_status(ctrl_logs, offsets, status)
+            if cfg.on_poll is not None:
+                cfg.on_poll()
             done = [not c.alive() for c in controllers]
             armed = sum(1 for s in status if s.get("armed"))
             offb = sum(1 for s in status if s.get("offboard"))
@@ -554,6 +558,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                 reason = f"time limit {limit:.0f} s"
                 break
             time.sleep(0.2)
+        if cfg.on_poll is not None:
+            cfg.on_poll()
         bar.show("", force=True)
         bar.done()
         killed += _stop_all(controllers, signal.SIGTERM, 20.0)

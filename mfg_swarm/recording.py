@@ -426,7 +426,7 @@ class InstantPublisher:
         from foxglove.messages import (ArrowPrimitive, Color, KeyValuePair, LinePrimitive, LocationFix, Point3, Pose,
                                        Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive, Vector3)
 
-        ch, n, q_id = self.ch, self.n, self._q_id
+        ch, q_id = self.ch, self._q_id
         lt, ts = _ns(self.base_s + t_s), self.stamp(t_s)
         pos = np.asarray(pos_m, dtype=float)
         vel = np.asarray(vel_m_s, dtype=float)

@@ -14,6 +14,7 @@ import shutil
 import subprocess
 import sys
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -169,16 +170,104 @@ def _assert_no_children_left(before: set[int]) -> None:
     assert not left, f"processes left behind: {[p.cmdline()[:4] for p in left]}"
 
 
+def _ws_decoder(channel: dict):
+    """A decoder for one advertised channel (Foxglove WebSocket protocol: protobuf schemas come base64-encoded)."""
+    import base64
+
+    from mcap.records import Schema
+
+    if channel["encoding"] == "protobuf":
+        schema = Schema(id=channel["id"], name=channel["schemaName"], encoding="protobuf", data=base64.b64decode(channel["schema"]))
+        return ProtobufDecoderFactory().decoder_for("protobuf", schema)
+    assert channel["encoding"] == "json", channel
+    return json.loads
+
+
+@dataclass
+class LiveRun:
+    """A process swarm flown with ``run --live 0`` while a WebSocket client watched it."""
+
+    out: Path
+    subprotocol: str
+    states: dict[int, dict[float, list[float]]]      # vehicle -> {t_s: [x_north_m, y_east_m]} as served live
+    decoded_topics: set[str]
+
+
 @pytest.fixture(scope="module")
-def swarm_run(tmp_path_factory) -> Path:
-    """`mfg-swarm run --n 4 --steps 20` (lockstep, mock vehicles + controllers on loopback), recorded by default."""
-    out = tmp_path_factory.mktemp("run") / "run4"
+def live_run(tmp_path_factory) -> LiveRun:
+    """`mfg-swarm run --n 4 --steps 20 --live 0` (lockstep, mock vehicles + controllers on loopback, recorded by
+    default), watched by a real WebSocket client (websockets) on loopback: advertise -> subscribe -> binary
+    MessageData (opcode 1, u32 subscription id, u64 log time, payload), each payload decoded with its channel's
+    schema. foxglove-sdk 0.30 speaks the protocol under the subprotocol name foxglove.sdk.v1 (a client offering
+    only foxglove.websocket.v1 gets HTTP 400); the client offers both."""
+    import queue
+    import re
+    import struct
+    import threading
+    import time
+
+    from websockets.sync.client import connect
+
+    n, out = 4, tmp_path_factory.mktemp("run") / "run4"
     before = _children()
-    proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "run", "--n", "4", "--steps", "20", "--out", str(out),
-                           "--no-progress", "--no-plot"], capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = subprocess.Popen([sys.executable, "-m", "mfg_swarm.cli", "run", "--n", str(n), "--steps", "20", "--live", "0",
+                             "--out", str(out), "--no-progress", "--no-plot"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stderr], daemon=True).start()
+    states: dict[int, dict[float, list[float]]] = defaultdict(dict)
+    decoded: set[str] = set()
+    try:
+        port, deadline = None, time.monotonic() + 60
+        while port is None and time.monotonic() < deadline:
+            try:
+                m = re.search(r"live: ws://127\.0\.0\.1:(\d+)", lines.get(timeout=max(0.1, deadline - time.monotonic())))
+            except queue.Empty:
+                break
+            port = int(m.group(1)) if m else None
+        assert port, "the launcher did not print its live port within 60 s"
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+                     open_timeout=10, proxy=None, compression=None) as ws:
+            subprotocol = ws.subprotocol
+            subs: dict[int, tuple[str, object]] = {}
+            deadline = time.monotonic() + 180
+            while time.monotonic() < deadline and not all(len(states[i]) >= 5 for i in range(n)):
+                try:
+                    frame = ws.recv(timeout=2)
+                except TimeoutError:
+                    continue
+                if isinstance(frame, str):
+                    msg = json.loads(frame)
+                    if msg["op"] == "advertise":
+                        new = []
+                        for ch in msg["channels"]:
+                            sid = len(subs) + 1
+                            subs[sid] = (ch["topic"], _ws_decoder(ch))
+                            new.append({"id": sid, "channelId": ch["id"]})
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                    continue
+                assert frame[0] == 0x01, f"unexpected binary opcode {frame[0]}"
+                sid, log_time_ns = struct.unpack_from("<IQ", frame, 1)
+                topic, decode = subs[sid]
+                payload = decode(bytes(frame[13:]))
+                decoded.add(topic)
+                m = re.fullmatch(r"/uav(\d+)/state", topic)
+                if m:
+                    assert log_time_ns == round(payload["t_s"] * 1e9)          # lockstep: simulation time
+                    states[int(m.group(1))][payload["t_s"]] = [payload["x_north_m"], payload["y_east_m"]]
+        rc = proc.wait(timeout=RUN_TIMEOUT_S)
+        assert rc == 0, "".join(lines.queue)[-3000:]
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(timeout=60)
     _assert_no_children_left(before)
-    return out
+    return LiveRun(out, subprotocol, dict(states), decoded)
+
+
+@pytest.fixture(scope="module")
+def swarm_run(live_run) -> Path:
+    return live_run.out
 
 
 @pytest.mark.e2e
@@ -236,3 +325,15 @@ def test_the_layout_in_docs_is_the_generated_one_and_names_only_recorded_topics(
     msgs, _, _ = read_mcap(paper_sim[0] / "flight.mcap")
     named = set(re.findall(r'"(/(?:uav\d+|swarm|log)[^".]*)', doc))
     assert named and named <= set(msgs), named - set(msgs)
+
+
+@pytest.mark.e2e
+def test_run_live_serves_every_vehicle_over_the_foxglove_websocket_protocol(live_run):
+    assert live_run.subprotocol == "foxglove.sdk.v1"
+    assert all(len(live_run.states.get(i, {})) >= 5 for i in range(4)), {i: len(v) for i, v in live_run.states.items()}
+    assert {f"/uav{i}/fix" for i in range(4)} | {"/swarm/scene", "/swarm/separation"} <= live_run.decoded_topics
+    # what was served live is what the vehicles flew (the controllers log the float32 telemetry they received)
+    traj = load_trajectories(live_run.out / "trajectories.npz")
+    for i in range(4):
+        for t_s, xy in live_run.states[i].items():
+            np.testing.assert_allclose(xy, traj.pos_m[round(t_s / traj.dt_s), i], rtol=0, atol=1e-9)
