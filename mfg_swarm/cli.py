@@ -297,7 +297,7 @@ def _cmd_run(args) -> int:
     if args.record and metrics.get("steps"):
         try:
             figures += ", " + _record(out, args, mission)
-        except ValueError as exc:     # the recording is a view; the results are already written
+        except Exception as exc:      # the recording is a view; the results are already written
             print(f"mfg-swarm: could not write flight.mcap: {exc}", file=sys.stderr)
     if metrics.get("partial"):
         print(f"mfg-swarm: the run did not complete: {metrics.get('end_reason')}", file=sys.stderr)

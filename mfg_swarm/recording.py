@@ -267,7 +267,6 @@ def load_run(run_dir: str | Path, *, mission=None, datum: GeodeticPoint | None =
         raise RecordingError(f"{run_dir}: no such run folder")
     metrics = _load_json(run_dir / "metrics.json", "metrics.json") if (run_dir / "metrics.json").is_file() else {}
     tlogs = _vehicle_tlogs(run_dir)
-    _check_tlogs(tlogs)
     npz = run_dir / "trajectories.npz"
     datum = _datum_from(metrics, mission, datum)
     t0_unix = None
@@ -277,6 +276,7 @@ def load_run(run_dir: str | Path, *, mission=None, datum: GeodeticPoint | None =
         if "t0_unix_s" in traj.extra:
             t0_unix = float(traj.extra["t0_unix_s"])
     elif tlogs:
+        _check_tlogs(tlogs)             # only the files it reads: with an npz the tlogs are not needed
         traj, datum, t0_unix = _tracks_from_tlogs(run_dir, tlogs, metrics, datum)
         source = f"{len(tlogs)} tlog(s)"
     else:

@@ -306,6 +306,7 @@ def test_convert_refuses_a_damaged_tlog_and_leaves_nothing(swarm_run, tmp_path, 
     d = tmp_path / "bad"
     shutil.copytree(swarm_run, d)
     (d / "flight.mcap").unlink()
+    (d / "trajectories.npz").unlink()          # convert reads the tlogs only without an npz
     tlog = d / "vehicles" / "vehicle2.tlog"
     tlog.write_bytes(damage(tlog.read_bytes()))
     proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "convert", str(d)], capture_output=True, text=True,
