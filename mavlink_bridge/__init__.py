@@ -71,7 +71,7 @@ from .px4 import (
 )
 from .ratelog import RejectLog
 from .signing import SignatureVerifier, SigningConfig, SigningKeyError, load_signing_key, write_signing_key
-from .tlog import TlogWriter, read_tlog
+from .tlog import TlogCheck, TlogError, TlogWriter, check_tlog, read_tlog
 from .transport import Endpoint, open_transport, parse_connection_string
 
 AccelerationSetpoint = SetPositionTargetLocalNed

@@ -11,9 +11,12 @@ import logging
 import struct
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["TlogWriter", "read_tlog"]
+from .errors import BridgeError
+
+__all__ = ["TlogWriter", "read_tlog", "check_tlog", "TlogCheck", "TlogError"]
 
 log = logging.getLogger(__name__)
 _STAMP = struct.Struct(">Q")
@@ -97,3 +100,60 @@ def read_tlog(path: str | Path, only: tuple[str, ...] | None = None):
         log.warning("%s does not frame as TlogWriter records; reading it with pymavlink", path)
         return [(t, r) for t, r in read_tlog_raw(str(path)) if r.msg.MSG_NAME in only]
     return list(read_tlog_raw(str(path)))
+
+
+class TlogError(BridgeError, ValueError):
+    """A tlog that does not frame as records (8-byte stamp + one MAVLink 1/2 packet): corrupt or truncated."""
+
+
+@dataclass(frozen=True)
+class TlogCheck:
+    """What :func:`check_tlog` found: every record framed."""
+
+    n_records: int
+    first_unix_s: float | None
+    last_unix_s: float | None
+
+
+_EARLIEST_US = 946_684_800 * 1_000_000      # 2000-01-01: a stamp before it is not a tlog stamp
+_LATEST_US = 4_102_444_800 * 1_000_000      # 2100-01-01
+
+
+def check_tlog(path: str | Path) -> TlogCheck:
+    """Frame every record of a tlog (``TlogWriter``'s format) without parsing the packets; raise
+    :class:`TlogError` naming the byte offset if a record is cut short (a truncated file), a packet
+    does not start with a MAVLink 1 (0xFE) or 2 (0xFD) magic byte, or a stamp is not a plausible
+    UNIX time in microseconds (2000-2100), i.e. the file is not a tlog or is corrupt. The packets'
+    checksums are not verified (pymavlink does that when it reads them)."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise TlogError(f"{p}: cannot read: {exc}") from None
+    n, i, count = len(data), 0, 0
+    first = last = None
+    while i < n:
+        j = i + _STAMP.size
+        if j + 2 > n:
+            raise TlogError(f"{p}: truncated: {n - i} byte(s) at offset {i} are not a whole record")
+        t_us = _STAMP.unpack_from(data, i)[0]
+        if not (_EARLIEST_US <= t_us <= _LATEST_US):
+            raise TlogError(f"{p}: corrupt: record {count} at offset {i} has no UNIX time stamp ({t_us} us)")
+        magic = data[j]
+        if magic == 0xFD:
+            if j + 3 > n:
+                raise TlogError(f"{p}: truncated: record {count} at offset {i} is cut short")
+            size = 10 + data[j + 1] + 2 + (13 if data[j + 2] & 0x01 else 0)
+        elif magic == 0xFE:
+            size = 6 + data[j + 1] + 2
+        else:
+            raise TlogError(f"{p}: corrupt: record {count} at offset {i} does not hold a MAVLink packet "
+                            f"(byte 0x{magic:02X}, not 0xFD or 0xFE)")
+        if j + size > n:
+            raise TlogError(f"{p}: truncated: record {count} at offset {i} needs {_STAMP.size + size} bytes, "
+                            f"the file ends {n - i} bytes after its start")
+        first = t_us * 1e-6 if first is None else first
+        last = t_us * 1e-6
+        count += 1
+        i = j + size
+    return TlogCheck(count, first, last)

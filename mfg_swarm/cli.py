@@ -50,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--fail-vehicle", type=int, default=None, metavar="K", help="fault: vehicle K stops following its controller and holds where it is")
     sim.add_argument("--fail-at", type=float, default=0.0, metavar="T", help="fault: time in s at which --fail-vehicle fails (default: 0)")
     sim.add_argument("--gust", action="store_true", help="fault: a wind gust beyond V_o (mfg_swarm.sim.GustParams: 1 m/s^2 +-50 %%, t = 20-25 s)")
+    sim.add_argument("--record", action="store_true",
+                     help="also write flight.mcap (Foxglove: map, 3D scene, plots, events; docs/formats.md)")
 
     run = sub.add_parser("run", help="fly the swarm as processes: N mock vehicles + N controllers over MAVLink and Zenoh")
     _add_common(run)
@@ -87,6 +89,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="controllers run at SCHED_FIFO priority P (1-99; needs CAP_SYS_NICE), as on a flight computer")
     run.add_argument("--no-progress", action="store_true")
     run.add_argument("--no-plot", action="store_true", help="do not draw the figures after the flight")
+    run.add_argument("--live", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                     help="serve the recording's topics live over the Foxglove WebSocket protocol on 127.0.0.1:PORT "
+                          "(default port 8765; 0: one the OS picks) while the swarm flies")
+    rec = run.add_mutually_exclusive_group()
+    rec.add_argument("--record", dest="record", action="store_true", default=True,
+                     help="write flight.mcap after the flight (default; Foxglove: docs/formats.md)")
+    rec.add_argument("--no-record", dest="record", action="store_false", help="no flight.mcap")
 
     mis = sub.add_parser("mission", help="write a built-in scenario as a field mission file (docs/mission.md) to fly with --mission")
     mis.add_argument("--scenario", default="paper", help="a grid-launched family: paper, crossing, dense, swap4 (default: paper)")
@@ -99,6 +108,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     plot = sub.add_parser("plot", help="the paper's figures (Fig. 3, 4, 5) as PNG for a run or a folder of runs")
     plot.add_argument("dirs", nargs="+", type=Path, help="run folders, or folders holding run folders")
+    plot.add_argument("--animate", action="store_true",
+                      help="an animated replay of each run (flight.gif; flight.mp4 too with --mp4 if ffmpeg exists) instead of the figures")
+    plot.add_argument("--fps", type=float, default=10.0, help="--animate: frames per second (default: 10)")
+    plot.add_argument("--max-frames", type=int, default=200,
+                      help="--animate: at most this many frames: every k-th control step (default: 200)")
+    plot.add_argument("--mp4", action="store_true", help="--animate: also an MP4 (needs ffmpeg on the PATH)")
+
+    conv = sub.add_parser("convert", help="turn a run folder (trajectories.npz, or the vehicles' tlogs) into flight.mcap for Foxglove")
+    conv.add_argument("run_dir", type=Path, help="a run folder (mfg-swarm sim/run), or a folder of a real vehicle's .tlog files")
+    conv.add_argument("--out", type=Path, default=None, help="the MCAP to write (default: RUN_DIR/flight.mcap)")
+    conv.add_argument("--mission", type=Path, default=None, metavar="FILE",
+                      help="the mission flown (its datum, altitudes and safety radius)")
+    conv.add_argument("--datum", default=None, metavar="LAT,LON,ALT",
+                      help="the swarm frame's origin (deg, deg, m AMSL; default: metrics.json's, the mission's, "
+                           "the default datum, or for bare tlogs the first vehicle's first fix)")
+    conv.add_argument("--safety-radius-m", type=float, default=None, help="sphere radius drawn per vehicle (default: 0.05 m)")
 
     rep = sub.add_parser("reproduce", help="the paper's comparison and every claim beside the measured figure (claims.md)")
     rep.add_argument("--out", type=Path, required=True)
@@ -180,7 +205,36 @@ def _cmd_sim(args) -> int:
     summary = {k: metrics[k] for k in ("n", "mode", "range_m", "collision_pairs", "arrived_fraction", "arrival_time_s",
                                        "comm_states_per_uav", "motion_energy_per_uav", "wall_s")}
     print(json.dumps(summary))
-    print(f"results in {args.out}/ (metrics.json, trajectories.npz)", file=sys.stderr)
+    recorded = f", {_record(args.out, args, _mission(args))}" if args.record else ""
+    print(f"results in {args.out}/ (metrics.json, trajectories.npz{recorded})", file=sys.stderr)
+    return 0
+
+
+def _record(out: Path, args, mission) -> str:
+    """flight.mcap for a finished run folder; returns what to tell the user."""
+    from .recording import record_run
+
+    summary = record_run(out, mission=mission, safety_radius_m=getattr(args, "safety_radius_m", None))
+    return f"{summary.path} ({sum(summary.messages_by_topic.values())} messages, {summary.collision_events} collision events)"
+
+
+def _cmd_convert(args) -> int:
+    from mfg_autopilot.mission import GeodeticPoint
+
+    from .recording import record_run
+
+    datum = None
+    if args.datum is not None:
+        try:
+            lat, lon, alt = (float(x) for x in args.datum.split(","))
+        except ValueError:
+            raise ValueError(f"--datum must be LAT,LON,ALT (deg, deg, m), got {args.datum!r}") from None
+        datum = GeodeticPoint(lat, lon, alt)
+    summary = record_run(args.run_dir, args.out, mission=_mission(args), datum=datum, safety_radius_m=args.safety_radius_m)
+    print(summary.path)
+    print(f"{sum(summary.messages_by_topic.values())} messages on {len(summary.messages_by_topic)} topic groups, "
+          f"{summary.collision_events} collision events, {summary.backstop_events} backstop events; open it in Foxglove "
+          f"(layout: docs/foxglove_layout.json)", file=sys.stderr)
     return 0
 
 
@@ -207,6 +261,20 @@ def _cmd_run(args) -> int:
     preset_by_name(args.preset)           # a bad preset name fails before any process starts
     if args.mode.startswith("hjb") and cfg.range_m is None:
         raise ValueError("HJB_d needs a radio range: give --range-m D or --power-mw P")
+    live = None
+    if args.live is not None:
+        import dataclasses
+
+        from .live import LiveView
+
+        live = LiveView([out / "controllers" / f"controller{i}.jsonl" for i in range(cfg.scenario.n)],
+                        dt_s=preset_by_name(args.preset).dt_s, dest_m=cfg.scenario.destination_m, lockstep=args.lockstep,
+                        port=args.live, datum=None if mission is None else mission.datum,
+                        altitude_agl_m=None if mission is None else mission.arrays()["altitude_agl_m"],
+                        safety_radius_m=(mission.safety_radius_m if mission is not None else args.safety_radius_m or 0.05))
+        cfg = dataclasses.replace(cfg, on_poll=live.poll)
+        print(f"live: {live.url} (Foxglove: Open connection -> Foxglove WebSocket -> {live.url}; "
+              f"layout docs/foxglove_layout.json)", file=sys.stderr, flush=True)
     clock = "lockstep" if args.lockstep else "real time"
     print(f"flying {args.n} vehicles ({args.mode}, preset {args.preset}, {args.scenario}, {clock}) as processes ...", file=sys.stderr)
     try:
@@ -214,6 +282,9 @@ def _cmd_run(args) -> int:
     except LaunchError as exc:
         print(f"mfg-swarm: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if live is not None:
+            live.close()
     summary = {k: metrics.get(k) for k in ("n", "mode", "range_m", "steps", "collision_pairs", "arrived_fraction",
                                             "arrival_time_s", "comm_states_per_uav", "motion_energy_per_uav", "wall_s", "partial")}
     print(json.dumps(summary))
@@ -224,6 +295,11 @@ def _cmd_run(args) -> int:
             figures = ", figures: " + ", ".join(p.name for p in plot_run(out))
         except Exception as exc:  # figures are a convenience; the results are already written
             print(f"mfg-swarm: could not draw figures: {exc}", file=sys.stderr)
+    if args.record and metrics.get("steps"):
+        try:
+            figures += ", " + _record(out, args, mission)
+        except Exception as exc:      # the recording is a view; the results are already written
+            print(f"mfg-swarm: could not write flight.mcap: {exc}", file=sys.stderr)
     if metrics.get("partial"):
         print(f"mfg-swarm: the run did not complete: {metrics.get('end_reason')}", file=sys.stderr)
     state = "PARTIAL results" if metrics.get("partial") else "results"
@@ -241,6 +317,12 @@ def _cmd_plot(args) -> int:
         runs = find_runs(d)
         if not runs:
             raise ValueError(f"no run in {d} (a run folder holds metrics.json and trajectories.npz)")
+        if args.animate:
+            from .animate import animate_run
+
+            for r in runs:
+                made += animate_run(r, fps=args.fps, max_frames=args.max_frames, mp4=args.mp4)
+            continue
         if runs == [d]:
             made += plot_run(d)
             continue
@@ -281,6 +363,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_run(args)
         if args.cmd == "plot":
             return _cmd_plot(args)
+        if args.cmd == "convert":
+            return _cmd_convert(args)
         if args.cmd == "reproduce":
             return _cmd_reproduce(args)
         if args.cmd == "bench":

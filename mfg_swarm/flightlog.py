@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mavlink_bridge import LocalPositionNed, SetPositionTargetLocalNed, read_tlog
+from mavlink_bridge import GlobalPositionInt, GpsGlobalOrigin, LocalPositionNed, SetPositionTargetLocalNed, read_tlog
 
 __all__ = ["VehicleTrack", "read_vehicle_tlog", "read_controller_log", "ControllerRecord", "lockstep_grid", "realtime_grid"]
 
@@ -32,26 +32,44 @@ class VehicleTrack:
     sp_time_boot_ms: np.ndarray      # (j,) setpoints' time_boot_ms
     sp_unix_s: np.ndarray            # (j,)
     sp_acc: np.ndarray               # (j, 2)
+    # with geodetic=True only (read_vehicle_tlog): the EKF origin and the vehicle's GLOBAL_POSITION_INT
+    origin_deg_m: tuple[float, float, float] | None = None       # GPS_GLOBAL_ORIGIN (lat_deg, lon_deg, alt_amsl_m), the last one
+    gpi_time_boot_ms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))   # (g,)
+    gpi_unix_s: np.ndarray = field(default_factory=lambda: np.zeros(0))                          # (g,)
+    gpi: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))   # (g, 5) [lat_deg, lon_deg, alt_amsl_m, vn_m_s, ve_m_s]
+    system_id: int | None = None
 
 
-def read_vehicle_tlog(path: str | Path, system_id: int) -> VehicleTrack:
-    """Positions the vehicle ``system_id`` sent and acceleration setpoints addressed to it."""
+def read_vehicle_tlog(path: str | Path, system_id: int | None, geodetic: bool = False) -> VehicleTrack:
+    """Positions the vehicle ``system_id`` sent and acceleration setpoints addressed to it. ``system_id``
+    None: the first system that sent a LOCAL_POSITION_NED or GLOBAL_POSITION_INT (a one-vehicle tlog).
+    ``geodetic``: also its GPS_GLOBAL_ORIGIN (the origin of its LOCAL_NED) and GLOBAL_POSITION_INT."""
     pt, pu, ps, st, su, sa = [], [], [], [], [], []
+    gt, gu, gp = [], [], []
+    origin = None
     if not Path(path).is_file():
         log.warning("no tlog at %s (the vehicle process never started?)", path)
         packets = []
     else:
-        packets = read_tlog(path, only=("LOCAL_POSITION_NED", "SET_POSITION_TARGET_LOCAL_NED"))
+        only = ("LOCAL_POSITION_NED", "SET_POSITION_TARGET_LOCAL_NED")
+        packets = read_tlog(path, only=only + (("GPS_GLOBAL_ORIGIN", "GLOBAL_POSITION_INT") if geodetic else ()))
+    if system_id is None:
+        system_id = next((r.src_system for _, r in packets if isinstance(r.msg, (LocalPositionNed, GlobalPositionInt))), None)
     for unix_s, r in packets:
         m = r.msg
-        if isinstance(m, LocalPositionNed) and r.src_system == system_id:
+        if isinstance(m, GlobalPositionInt) and r.src_system == system_id:
+            gt.append(m.time_boot_ms); gu.append(unix_s); gp.append((m.lat_deg, m.lon_deg, m.alt_amsl_m, m.vx_m_s, m.vy_m_s))
+        elif isinstance(m, GpsGlobalOrigin) and r.src_system == system_id:
+            origin = (m.lat_deg, m.lon_deg, m.alt_amsl_m)
+        elif isinstance(m, LocalPositionNed) and r.src_system == system_id:
             pt.append(m.time_boot_ms); pu.append(unix_s); ps.append((m.x_m, m.y_m, m.vx_m_s, m.vy_m_s))
         elif isinstance(m, SetPositionTargetLocalNed) and m.target_system in (0, system_id):
             ax, ay, _ = m.acc_ned_m_s2
             if np.isfinite(ax) and np.isfinite(ay):
                 st.append(m.time_boot_ms); su.append(unix_s); sa.append((ax, ay))
     return VehicleTrack(np.array(pt, dtype=np.int64), np.array(pu), np.array(ps, dtype=float).reshape(-1, 4),
-                        np.array(st, dtype=np.int64), np.array(su), np.array(sa, dtype=float).reshape(-1, 2))
+                        np.array(st, dtype=np.int64), np.array(su), np.array(sa, dtype=float).reshape(-1, 2),
+                        origin, np.array(gt, dtype=np.int64), np.array(gu), np.array(gp, dtype=float).reshape(-1, 5), system_id)
 
 
 @dataclass

@@ -25,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -99,6 +100,7 @@ class RunConfig:
     python: str = field(default_factory=lambda: sys.executable)
     mission: object | None = None             # a field mission (mfg_autopilot.mission.Mission); scenario = its swarm frame
     mission_file: Path | None = None          # ... and its file, handed to every controller
+    on_poll: Callable[[], object] | None = None   # called every 0.2 s while the swarm flies and once after (run --live)
 
 
 def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200) -> tuple[list[int], list[int]]:
@@ -362,7 +364,7 @@ def _controller_status(paths: list[Path], offsets: list[int], state: list[dict])
 
 
 _PREVIOUS_RUN_FILES = ("controllers/controller*.jsonl", "controllers/state*/checkpoint.pkl", "vehicles/vehicle*.tlog",
-                       "stderr/*.log", "metrics.json", "trajectories.npz", "fig*.png")
+                       "stderr/*.log", "metrics.json", "trajectories.npz", "fig*.png", "flight.mcap", "flight.gif")
 
 
 def clear_previous_run(out: Path) -> list[Path]:
@@ -521,6 +523,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
         reason = "completed"
         while True:
             _controller_status(ctrl_logs, offsets, status)
+            if cfg.on_poll is not None:
+                cfg.on_poll()
             done = [not c.alive() for c in controllers]
             armed = sum(1 for s in status if s.get("armed"))
             offb = sum(1 for s in status if s.get("offboard"))
@@ -554,6 +558,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                 reason = f"time limit {limit:.0f} s"
                 break
             time.sleep(0.2)
+        if cfg.on_poll is not None:
+            cfg.on_poll()
         bar.show("", force=True)
         bar.done()
         killed += _stop_all(controllers, signal.SIGTERM, 20.0)
@@ -601,6 +607,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     if cfg.mission is not None:
         tracks = [_to_swarm_frame(tr, cfg.mission, i + 1) for i, tr in enumerate(tracks)]
     logs = [read_controller_log(out / "controllers" / f"controller{i}.jsonl") for i in range(n)]
+    t0 = None
     if cfg.lockstep:
         for i, tr in enumerate(tracks):
             _, states[:, i], acc[:, i] = lockstep_grid(tr, dt_ms, T)
@@ -645,8 +652,11 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
         if lg.end is not None and lg.end.get("destination_m") is not None:
             dest[i] = lg.end["destination_m"]
     w_ref = np.array([rec["w_H"] for rec in logs[0].steps[: T_eff + 1]], dtype=float) if logs and logs[0].steps else None
+    extra = {"backstop_active": backstop}
+    if t0 is not None:
+        extra["t0_unix_s"] = np.array(float(t0))      # real time: the wall time of t_0 (flight.mcap's clock)
     traj = Trajectories(dt_s=dt, pos_m=states[:, :, 0:2], vel_m_s=states[:, :, 2:4], acc_m_s2=acc, dest_m=dest,
-                        comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref)
+                        comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref, extra=extra)
     metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.mode.startswith("hjb") else None,
                               seed=cfg.seed, wall_s=wall_s, scenario=cfg.scenario.name, preset=preset.name)
     metrics["steps_requested"] = T

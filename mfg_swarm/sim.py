@@ -223,7 +223,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
 
     hold_pos = None
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
-    backstop_rows = np.zeros(n, dtype=np.int64)
+    backstop_active = np.zeros((T, n), dtype=bool)
     for k in range(T):
         obs = f32(plant.states)
         pos[k], vel[k] = plant.states[:, 0:2], plant.states[:, 2:4]
@@ -263,18 +263,19 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                 st[:, 0:2] += 0.5 * a_gust * h * h + a_gust * h * ((k + 1) * dt - t1)
                 st[:, 2:4] += a_gust * h
                 plant.states = st
-        backstop_rows += np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)
+        backstop_active[k] = np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)
         grad[k], mfe[k], reg[k] = info.grad_evals, info.mf_evals, info.reg_active
         bar.update(k + 1)
     pos[T], vel[T] = plant.states[:, 0:2], plant.states[:, 2:4]
     w_ref[T] = ctrl.weights()["w_H"][0]
 
     traj = Trajectories(dt_s=dt, pos_m=pos, vel_m_s=vel, acc_m_s2=acc_log, dest_m=np.asarray(ctrl.destinations_m, dtype=float).copy(),
-                        comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref)
+                        comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref,
+                        extra={"backstop_active": backstop_active})
     metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.gossips else None,
                               seed=cfg.seed, wall_s=time.perf_counter() - t_wall, scenario=sc.name,
                               preset=preset.name, path="sim")
-    metrics["backstop_activations"] = int(backstop_rows.sum())
+    metrics["backstop_activations"] = int(backstop_active.sum())
     metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
     cert = getattr(ctrl, "plan_certificate", None)
     if cert is not None:

@@ -91,6 +91,8 @@ def test_the_fixture_tree_keeps_every_contract(tmp_path):
     ("mock_vehicle/plant.py", "import numba\n", "numba"),
     ("mfg_autopilot/safety/backstop.py", "import pyrvo\n", "pyrvo"),
     ("mfg_swarm/sim.py", "from pyrvo import RVOSimulator\n", "pyrvo"),
+    ("mavlink_bridge/tlog.py", "import mcap.reader\n", "Foxglove and MCAP"),
+    ("mfg_autopilot/runtime/autopilot.py", "import foxglove\n", "Foxglove and MCAP"),
     ("mfg_autopilot/guidance/controller.py", "import socket\n", "no I/O"),
     ("mfg_autopilot/paper/learners.py", "import logging\n", "no I/O"),
     # a lazy (function-level) import that closes a circle

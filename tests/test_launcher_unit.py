@@ -119,7 +119,7 @@ def test_a_reused_results_folder_starts_clean_but_keeps_other_files(tmp_path):
 
     old = ["controllers/controller0.jsonl", "controllers/controller12.jsonl", "controllers/state3/checkpoint.pkl",
            "vehicles/vehicle0.tlog", "stderr/world.log",
-           "metrics.json", "trajectories.npz", "fig3_trajectories.png"]
+           "metrics.json", "trajectories.npz", "fig3_trajectories.png", "flight.mcap", "flight.gif"]
     keep = ["notes.txt", "controllers/README", "vehicles/extra.bin"]
     for f in old + keep:
         (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
