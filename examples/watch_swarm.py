@@ -19,6 +19,7 @@ import json
 import math
 import struct
 import threading
+import time
 
 import zenoh
 
@@ -72,9 +73,23 @@ def main(conf: zenoh.Config, swarm: str, count: int, duration_s: float) -> int:
     with zenoh.open(conf) as session:
         session.declare_subscriber(f"mfg/{swarm}/state/*", on_state)
         session.liveliness().declare_subscriber(f"mfg/{swarm}/alive/*", on_alive, history=True)
-        # t = 0 states of vehicles that already did their initial exchange
-        session.get(f"mfg/{swarm}/init/*", lambda r: r.ok is not None and on_state(r.ok),
-                    target=zenoh.QueryTarget.ALL, timeout=2.0)
+        # t = 0 states of vehicles that already did their initial exchange; the vehicles' queryables reach a new
+        # session a moment after it opens (longer on a loaded machine), so ask again until one answers (<= 10 s)
+        seen_init: set[str] = set()
+
+        def on_init(reply) -> None:
+            if reply.ok is not None and str(reply.ok.key_expr) not in seen_init:
+                seen_init.add(str(reply.ok.key_expr))
+                on_state(reply.ok)
+
+        deadline = time.monotonic() + 10.0
+        while True:
+            before = len(seen_init)
+            for reply in session.get(f"mfg/{swarm}/init/*", target=zenoh.QueryTarget.ALL, timeout=2.0):
+                on_init(reply)
+            if (seen_init and len(seen_init) == before) or time.monotonic() > deadline or done.is_set():
+                break               # answered, and a second round found nobody new (or waited long enough)
+            time.sleep(0.2 if seen_init else 0.5)
         print(f"watching mfg/{swarm}/**", flush=True)
         done.wait(duration_s if duration_s > 0 else None)
         done.set()

@@ -298,6 +298,9 @@ class Reference:
         sn = self._not_heard(_sensed(obs), obs.neighbours)
         unplanned = self._unplanned(sn.states, sn.ids)
         planned = ~unplanned              # on the plan itself (not only up to the common mode)
+        if getattr(getattr(self, "plan", None), "kind", "interacting") in ("turn", "translation", "groups") \
+                and not bp.planned_response_rigid:
+            planned[:] = False            # the policy of the production code (a rigid or scheduled plan: issue 18)
         if np.any(unplanned) and self._own_err is not None and bp.common_mode:
             # common mode is not a threat: a vehicle that is off the plan the way the own vehicle is (a gust
             # blows both) is checked again against the plan shifted by the own deviation (the own row's s - s_plan);

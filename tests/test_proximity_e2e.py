@@ -44,15 +44,18 @@ def _simulate_recording_backstop(monkeypatch, **kw):
     return traj, m, np.array(rows)
 
 
-@pytest.mark.parametrize("scenario,seed,steps,expect_backstop", [("paper", 0, 16, False), ("dense", 3, 12, True)])
+# MFG flies a rigid plan in both scenarios (its backstop answers only vehicles off the plan: none here); HJB_0.3 in the
+# 0.5 m dense grid hears nobody and senses everybody, so its backstop acts
+@pytest.mark.parametrize("scenario,seed,steps,mode,expect_backstop", [("paper", 0, 16, "mfg", False),
+                                                                      ("dense", 3, 12, "hjb", True)])
 def test_lockstep_default_preset_with_proximity_sensor_equals_the_simulator(tmp_path, monkeypatch, scenario, seed, steps,
-                                                                           expect_backstop):
+                                                                           mode, expect_backstop):
     n = 9
     out = tmp_path / "run"
     before = {p.pid for p in psutil.Process().children(recursive=True)}
     proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "run", "--out", str(out), "--no-progress", "--no-plot",
-                           "--lockstep", "--preset", "default", "--scenario", scenario, "--n", str(n), "--mode", "mfg",
-                           "--seed", str(seed), "--steps", str(steps)], capture_output=True, text=True, timeout=240)
+                           "--lockstep", "--preset", "default", "--scenario", scenario, "--n", str(n), "--mode", mode,
+                           *(["--range-m", "0.3"] if mode == "hjb" else []), "--seed", str(seed), "--steps", str(steps)], capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     left = [p for p in psutil.Process().children(recursive=True)
             if p.pid not in before and p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
@@ -60,7 +63,8 @@ def test_lockstep_default_preset_with_proximity_sensor_equals_the_simulator(tmp_
     m_p = json.loads((out / "metrics.json").read_text())
     assert not m_p["partial"] and (out / "stderr" / "world.log").exists()
 
-    traj_s, m_s, act_s = _simulate_recording_backstop(monkeypatch, scenario=make_scenario(scenario, n), mode="mfg",
+    traj_s, m_s, act_s = _simulate_recording_backstop(monkeypatch, scenario=make_scenario(scenario, n), mode=mode,
+                                                      range_m=0.3 if mode == "hjb" else None,
                                                       preset=preset_by_name("default"), seed=seed, steps=steps)
     traj_p = load_trajectories(out / "trajectories.npz")
     assert traj_p.pos_m.shape == traj_s.pos_m.shape

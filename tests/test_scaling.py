@@ -116,7 +116,7 @@ def test_pairs_within_reach_are_exactly_the_brute_force_ones(seed):
     assert sim.pairs_within_reach(cKDTree(pts), pts, (base, extra), 12.0) is None       # reaches the cap
 
 
-@pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
+@pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {"fail_vehicle": 24, "fail_at_s": 10.0}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
                                                    ("mfg", "crossing", 50, {"fail_vehicle": 27, "fail_at_s": 15.0}),
                                                    ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
 def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
