@@ -50,8 +50,7 @@ def test_crossing_paths_are_staggered_and_the_certificate_holds():
     delays one group, and a brute-force check finds every pair at least the certified clearance apart."""
     pos, sites = _cross()
     together = GroupPlan(_rest(pos), sites, 0.5, COST, V, A)
-    d_together, _ = plan_min_separation(together, 0.25, 5.0)
-    assert d_together < 0.5                                   # the unscheduled plan collides
+    assert plan_min_separation(together, 0.5)[1] is not None  # the unscheduled plan comes closer than 0.5 m
     plan = group_plan_for(_rest(pos), sites, 0.5, COST, V, A, clearance_fraction=0.75)
     assert plan is not None and plan.kind == "groups"
     assert sorted(plan.start_s.tolist())[0] == 0.0 and max(plan.start_s) > 0.0
@@ -71,7 +70,7 @@ def test_a_site_on_another_groups_path_is_solved_by_order():
     pos = np.concatenate([a, b])
     sites = np.concatenate([np.tile([40.0, 0.0], (4, 1)), np.tile([0.0, 0.0], (4, 1))])
     together = GroupPlan(_rest(pos), sites, 0.5, COST, V, A)
-    assert plan_min_separation(together, 0.25, 5.0)[0] < 0.5
+    assert plan_min_separation(together, 0.5)[1] is not None
     plan = group_plan_for(_rest(pos), sites, 0.5, COST, V, A)
     assert plan is not None
     mover, waiter = plan.group[0], plan.group[-1]
@@ -134,3 +133,28 @@ def test_merge_flies_the_scheduled_plan_without_a_collision(tmp_path, family, se
     assert m["plan"]["plan"] == "groups"
     assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0
     assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]
+
+
+def _bands():
+    """Three vertical bands side by side (x = -6, 0, 6; 1.5 m apart within, 6 m between bands); the middle one flies
+    far east and the east one far west: each must cross the other's start area, so no waiting separates their
+    straight paths."""
+    ys = np.arange(-7.5, 7.6, 1.5)
+    band = lambda x: np.stack([np.full(ys.size, x), ys], axis=1)
+    pos = np.concatenate([band(-6.0), band(0.0), band(6.0)])
+    sites = np.concatenate([np.tile([-6.0, -60.0], (ys.size, 1)), np.tile([60.0, 0.0], (ys.size, 1)),
+                            np.tile([-60.0, 0.0], (ys.size, 1))])
+    return pos, sites
+
+
+def test_bands_that_must_cross_each_other_slide_out_first():
+    """Given the bands above, straight paths have no schedule; the planner's detour (slide out along the bands' long
+    axis, then to the site) has one, and a brute-force check of every pair keeps the certified clearance."""
+    pos, sites = _bands()
+    straight = GroupPlan(_rest(pos), sites, 0.5, COST, V, A)
+    assert schedule_groups(straight, 0.75 * 1.5) is None
+    plan = group_plan_for(_rest(pos), sites, 0.5, COST, V, A, clearance_fraction=0.75)
+    assert plan is not None and any(len(v) for v in plan.via_m)
+    assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
+    s_end, _ = plan.at(plan.T + 60.0)
+    assert np.allclose(s_end[:, 0:2], plan.slots_m, atol=1e-6)

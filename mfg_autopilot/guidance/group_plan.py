@@ -4,24 +4,27 @@ The general case of the conflict-free plan (issue 18; docs/default_controller.md
 construction"). When the target layout is not one rigid motion of the start (``rigid_plan.py``: a
 translation of a single group, a half turn of several), every *group* (the UAVs sharing a site) still
 moves rigidly: slot_j = site_g + (r_j(0) - centroid_g) (the slot rule of ``planner.slots_from_sites``),
-so group g translates by d_g = site_g - centroid_g along a rest-to-rest trapezoid (v_max, a_kin_max),
-starting at its own time T_g:
+so group g's centroid flies from its start to its site along straight legs (one, or two through a waypoint),
+each leg a rest-to-rest trapezoid (v_max, a_kin_max), from its own start time T_g:
 
-    r_j(t) = r_j(0) + s_g(t - T_g) u_g + w(t),   u_g = d_g / |d_g|,  s_g(tau) = 0 for tau <= 0,
+    r_j(t) = r_j(0) + o_g(t - T_g) + w(t),   o_g(tau) = 0 for tau <= 0, o_g = site_g - centroid_g at the end,
 
 w(t) the common offset of the swarm's mean start velocity (as in ``RigidPlan``: common to every
 particle, it changes no distance). Pairs within a group keep their start distance for the whole
-flight. Pairs of different groups are what the schedule is for: :func:`schedule_groups` starts with
-every T_g = 0 and, while the space-time check (:func:`plan_min_separation`, every pair along the plan
-sampled at ``check_dt_s`` with the distance between samples bounded from below) finds two groups
-closer than the required clearance, delays the later-ordered of the two by ``delay_step_s``, up to a
-total delay budget. The order is deterministic (by group index, i.e. by site coordinates), so every UAV
-computes the same schedule from the t = 0 exchange.
+flight. Pairs of different groups are what the schedule is for. Two groups' separation depends only on
+their start offset T_b - T_a; :func:`schedule_groups` searches start times on a grid by backtracking, each
+pair checked in space-time (:func:`_pair_min_separation`: sampled with steps that cannot miss an
+approach, so the clearance holds between samples too), and checks the plan found once more as a whole.
+Paths tried, in order (:func:`group_plan_for`): straight to the site; sliding out along the group's long
+axis first (:func:`slide_out_waypoints`); spreading out from the swarm's centroid first
+(:func:`expand_waypoints`). Everything is deterministic (groups by index, i.e. by site coordinates;
+bounded search), so every UAV computes the same plan from the t = 0 exchange.
 
-The schedule either certifies a clearance (every pair of particles, for all t, at least
-``clearance_m`` apart) or fails: two groups whose straight paths cross each other's parked start or
-site block cannot be separated by waiting; :func:`group_plan_for` then returns None and the controller
-keeps the interacting plan (no guarantee, and the flight's metrics say so).
+The plan either certifies a clearance (every pair of particles of different groups, for all t, at least
+``clearance_m`` apart; pairs within a group at their start distance) or fails: two groups each of which
+must cross the other's parked start area or site block cannot be separated by waiting;
+:func:`group_plan_for` then returns None and the controller keeps the interacting plan (no guarantee,
+and the flight's metrics say so: ``plan``).
 
 Shapes: states (N, 4) [x_m, y_m, vx_m_s, vy_m_s]; accelerations (N, 2).
 """
@@ -37,7 +40,7 @@ from mfg_autopilot.guidance.planner import min_spacing_m
 from mfg_autopilot.guidance.rigid_plan import _duration, trapezoid
 from mfg_autopilot.paper.params import CostParams
 
-__all__ = ["GroupPlan", "group_plan_for", "plan_min_separation", "schedule_groups"]
+__all__ = ["GroupPlan", "group_plan_for", "plan_min_separation", "schedule_groups", "slide_out_waypoints", "expand_waypoints"]
 
 
 class GroupPlan:
@@ -61,11 +64,9 @@ class GroupPlan:
         site_g = np.zeros((self.G, 2))
         site_g[self.group] = self.sites_m
         self.slots_m = self.sites_m + self.r0 - cen[self.group]
-        d = site_g - cen
-        self.dist_g = np.linalg.norm(d, axis=1)
-        self.u_g = d / np.maximum(self.dist_g, 1e-12)[:, None]
+        self.d_g = site_g - cen                          # each group's whole displacement (G, 2)
         self.v_max, self.a_max = float(v_max_m_s), float(a_kin_max_m_s2)
-        self.dur_g = np.array([_duration(float(x), self.v_max, self.a_max) for x in self.dist_g])
+        self.set_waypoints([np.zeros((0, 2))] * self.G)
         self.start_s = np.zeros(self.G) if start_s is None else np.asarray(start_s, dtype=float).reshape(self.G)
         self.T = float(np.max(self.start_s + self.dur_g)) if self.G else 0.0
         self.spacing_m = float(min(min_spacing_m(self.slots_m), min_spacing_m(self.r0)))
@@ -78,26 +79,55 @@ class GroupPlan:
         self.rep_active = np.zeros(self.N, dtype=bool)
         self._cache: tuple[int, np.ndarray, np.ndarray] | None = None
 
+    def set_waypoints(self, via_m: list[np.ndarray]) -> None:
+        """Each group's path: straight legs through its waypoints (offsets of its centroid from the start, (k, 2) each;
+        none: one straight leg to the site), every leg a rest-to-rest trapezoid, flown back to back."""
+        self.via_m = [np.asarray(v, dtype=float).reshape(-1, 2) for v in via_m]
+        self.legs: list[list[tuple[np.ndarray, float, float]]] = []      # per group: (start offset, direction * length, duration)
+        for g in range(self.G):
+            pts = np.concatenate([np.zeros((1, 2)), self.via_m[g], self.d_g[g][None, :]])
+            legs = []
+            for a, b in zip(pts[:-1], pts[1:]):
+                length = float(np.linalg.norm(b - a))
+                if length > 0.0:
+                    legs.append((a, b - a, _duration(length, self.v_max, self.a_max)))
+            self.legs.append(legs)
+        self.dur_g = np.array([sum(leg[2] for leg in legs) for legs in self.legs])
+        if hasattr(self, "start_s"):
+            self.T = float(np.max(self.start_s + self.dur_g)) if self.G else 0.0
+
+    def group_motion(self, g: int, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Offset, velocity and acceleration (2,) each of group g's centroid tau seconds after its start."""
+        zero = np.zeros(2)
+        if tau <= 0.0 or not self.legs[g]:
+            return zero, zero, zero
+        for a, vec, dur in self.legs[g]:
+            if tau < dur:
+                length = float(np.linalg.norm(vec))
+                sp, sv, sa = trapezoid(length, self.v_max, self.a_max, tau)
+                u = vec / length
+                return a + sp * u, sv * u, sa * u
+            tau -= dur
+        return self.d_g[g].copy(), zero, zero
+
+    def offsets_at(self, t: float, groups=None) -> np.ndarray:
+        """Each group's centroid offset from its start at time t, (G, 2) (rows of ``groups`` only, if given)."""
+        gs = range(self.G) if groups is None else groups
+        return np.array([self.group_motion(g, t - float(self.start_s[g]))[0] for g in gs]).reshape(-1, 2)
+
     def with_schedule(self, start_s: np.ndarray) -> "GroupPlan":
         """The same plan with another schedule (G,)."""
         out = GroupPlan.__new__(GroupPlan)
         out.__dict__.update(self.__dict__)
         out.start_s = np.asarray(start_s, dtype=float).reshape(self.G).copy()
+        out.via_m, out.legs, out.dur_g = self.via_m, self.legs, self.dur_g
         out.T = float(np.max(out.start_s + self.dur_g)) if self.G else 0.0
         out.k, out._cache, out.clearance_m = 0, None, float("nan")
         return out
 
-    def group_profile(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(s, s_dot, s_ddot) of every group at time t, (G,) each."""
-        out = np.zeros((3, self.G))
-        for g in range(self.G):
-            out[:, g] = trapezoid(float(self.dist_g[g]), self.v_max, self.a_max, t - float(self.start_s[g]))
-        return out[0], out[1], out[2]
-
     def positions_at(self, t: float) -> np.ndarray:
         """Every particle's position at time t without the common offset (it changes no distance), (N, 2)."""
-        s, _, _ = self.group_profile(t)
-        return self.r0 + (s[:, None] * self.u_g)[self.group]
+        return self.r0 + self.offsets_at(t)[self.group]
 
     def _offset(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         e = math.exp(-t / self.tau)
@@ -105,11 +135,12 @@ class GroupPlan:
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Every particle's state (N, 4) and kinematic acceleration (N, 2) at time t."""
-        s, sd, sdd = self.group_profile(t)
+        m = [self.group_motion(g, t - float(self.start_s[g])) for g in range(self.G)]
+        off, gv, ga = (np.array([x[i] for x in m]).reshape(-1, 2) for i in range(3))
         w, wd, wdd = self._offset(t)
-        pos = self.r0 + (s[:, None] * self.u_g)[self.group] + w[None, :]
-        vel = (sd[:, None] * self.u_g)[self.group] + wd[None, :]
-        acc = (sdd[:, None] * self.u_g)[self.group] + wdd[None, :]
+        pos = self.r0 + off[self.group] + w[None, :]
+        vel = gv[self.group] + wd[None, :]
+        acc = ga[self.group] + wdd[None, :]
         return np.concatenate([pos, vel], axis=1), acc
 
     def _now(self) -> tuple[np.ndarray, np.ndarray]:
@@ -131,56 +162,50 @@ class GroupPlan:
         self.k += 1
 
 
-def _segment_min_dist(d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
-    """Smallest |d0 + s (d1 - d0)| over s in [0, 1], per row. (p, 2) -> (p,)."""
-    e = d1 - d0
-    ee = np.einsum("pd,pd->p", e, e)
-    s = np.clip(-np.einsum("pd,pd->p", d0, e) / np.maximum(ee, 1e-300), 0.0, 1.0)
-    return np.linalg.norm(d0 + s[:, None] * e, axis=1)
+def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray, cutoff_m: float,
+                         min_step_s: float = 0.02) -> tuple[float, tuple[int, int, float] | None]:
+    """Whether groups ga and gb, started at start_s[ga] and start_s[gb], ever come closer than cutoff_m: (d, where).
 
-
-def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray, check_dt_s: float, cutoff_m: float
-                         ) -> tuple[float, tuple[int, int, float] | None]:
-    """:func:`plan_min_separation` restricted to the particles of groups ga and gb under the schedule start_s."""
+    Sampled with a step that cannot miss an approach: at a sample where the two groups are d >= cutoff + 2 v_max
+    min_step apart (nearest pair, k-d tree of gb's start layout queried with ga's shifted points), no pair can get
+    closer than cutoff before (d - cutoff) / (2 v_max) seconds (2 v_max bounds any relative speed: the common offset
+    cancels), which is the next step. A sample closer than cutoff + 2 v_max min_step ends the check as a conflict
+    (conservative by at most 2 v_max min_step). Before either group moves, and after both stopped, nothing changes.
+    Returns (smallest sampled distance, None) if no conflict, else (that distance, (i, j, t)), i in ga, j in gb."""
     ia, ib = np.flatnonzero(plan.group == ga), np.flatnonzero(plan.group == gb)
-    idx = np.concatenate([ia, ib])
-    in_a = np.zeros(idx.size, dtype=bool)
-    in_a[:ia.size] = True
-    r0 = plan.r0[idx]
-    shift = np.where(in_a[:, None], plan.u_g[ga][None, :], plan.u_g[gb][None, :])
-    t_lo = min(start_s[ga], start_s[gb])
-    t_hi = max(start_s[ga] + plan.dur_g[ga], start_s[gb] + plan.dur_g[gb])
-    h = float(check_dt_s)
-    n_int = max(1, int(math.ceil((t_hi - t_lo) / h)))
-
-    def pos(t: float) -> np.ndarray:
-        sa = trapezoid(float(plan.dist_g[ga]), plan.v_max, plan.a_max, t - float(start_s[ga]))[0]
-        sb = trapezoid(float(plan.dist_g[gb]), plan.v_max, plan.a_max, t - float(start_s[gb]))[0]
-        return r0 + shift * np.where(in_a, sa, sb)[:, None]
-
-    best, where = float("inf"), None
-    p0 = pos(t_lo)
-    for m in range(n_int):
-        t0 = t_lo + m * h
-        p1 = pos(t0 + h)
-        step = float(np.max(np.linalg.norm(p1 - p0, axis=1)))
-        pairs = cKDTree(p0).query_pairs(cutoff_m + 2.0 * step, output_type="ndarray")
-        if pairs.size:
-            pairs = pairs[in_a[pairs[:, 0]] != in_a[pairs[:, 1]]]
-        if pairs.size:
-            dmin = _segment_min_dist(p0[pairs[:, 1]] - p0[pairs[:, 0]], p1[pairs[:, 1]] - p1[pairs[:, 0]])
-            k = int(np.argmin(dmin))
-            if dmin[k] < best:
-                best, where = float(dmin[k]), (int(idx[pairs[k, 0]]), int(idx[pairs[k, 1]]), t0)
-        p0 = p1
-    return best, where
+    trees = plan.__dict__.setdefault("_trees", {})
+    if gb not in trees:
+        trees[gb] = cKDTree(plan.r0[ib])
+    tree = trees[gb]
+    v_rel = 2.0 * plan.v_max
+    guard = cutoff_m + v_rel * min_step_s
+    ta, tb = float(start_s[ga]), float(start_s[gb])
+    t = min(ta, tb)
+    t_end = max(ta + plan.dur_g[ga], tb + plan.dur_g[gb])
+    best = float("inf")
+    while True:
+        shift = plan.group_motion(ga, t - ta)[0] - plan.group_motion(gb, t - tb)[0]
+        d, j = tree.query(plan.r0[ia] + shift[None, :], k=1)
+        k = int(np.argmin(d))
+        dk = float(d[k])
+        best = min(best, dk)
+        if dk < guard:
+            return dk, (int(ia[k]), int(ib[int(j[k])]), t)
+        if t >= t_end:
+            return best, None
+        t = min(t + max((dk - cutoff_m) / v_rel, min_step_s), t_end)
 
 
 def _candidate_group_pairs(plan: GroupPlan, cutoff_m: float) -> list[tuple[int, int]]:
     """Pairs of groups whose swept areas (bounding box of the start and end layouts: a translation sweeps inside
     it) come within cutoff_m of each other: only those can ever conflict."""
     lo, hi = np.full((plan.G, 2), np.inf), np.full((plan.G, 2), -np.inf)
-    for pts in (plan.r0, plan.slots_m):
+    layouts = [plan.r0, plan.slots_m]
+    k_max = max((len(v) for v in plan.via_m), default=0)
+    for k in range(k_max):                     # every waypoint layout (a group without one: its start again)
+        off = np.array([v[k] if len(v) > k else np.zeros(2) for v in plan.via_m])
+        layouts.append(plan.r0 + off[plan.group])
+    for pts in layouts:
         for d in range(2):
             np.minimum.at(lo[:, d], plan.group, pts[:, d])
             np.maximum.at(hi[:, d], plan.group, pts[:, d])
@@ -192,86 +217,92 @@ def _candidate_group_pairs(plan: GroupPlan, cutoff_m: float) -> list[tuple[int, 
     return out
 
 
-def plan_min_separation(plan: GroupPlan, check_dt_s: float, cutoff_m: float, _memo: dict | None = None
-                        ) -> tuple[float, tuple[int, int, float] | None]:
-    """The smallest distance between two particles of *different* groups over the whole plan, (d_min, (i, j, t))
-    with t the start of the sample interval, or (inf, None) if no such pair comes within ``cutoff_m``.
-
-    Only pairs of groups whose swept areas come within cutoff_m are checked, each over the time either of the
-    two moves. Positions are sampled every ``check_dt_s``; between two samples a pair's relative position is
-    taken as the straight segment joining them. The true path differs from that chord by at most a_rel h^2 / 8
-    (|relative acceleration| <= 2 a_kin_max, h = check_dt_s), which :func:`schedule_groups` adds to its
-    clearance. Pairs are found per interval with a k-d tree within cutoff_m + twice the largest particle
-    displacement over the interval (no pair closer than cutoff_m is missed). ``_memo`` caches a pair of groups'
-    result by their start times (the schedule search re-checks the pairs it did not change)."""
+def plan_min_separation(plan: GroupPlan, cutoff_m: float) -> tuple[float, tuple[int, int, float] | None]:
+    """Whether particles of different groups ever come closer than cutoff_m in the whole plan: (d, None) if not (d the
+    smallest distance sampled, >= cutoff_m; between samples too, see :func:`_pair_min_separation`), else (d, (i, j, t))
+    for the first pair of groups found in conflict. Only pairs of groups whose swept areas come within cutoff_m are
+    checked (:func:`_candidate_group_pairs`)."""
     if plan.N < 2 or plan.G < 2:
         return float("inf"), None
-    best, where = float("inf"), None
+    best = float("inf")
     for ga, gb in _candidate_group_pairs(plan, cutoff_m):
-        key = (ga, gb, float(plan.start_s[ga]), float(plan.start_s[gb]), cutoff_m)
-        if _memo is not None and key in _memo:
-            d, w = _memo[key]
-        else:
-            d, w = _pair_min_separation(plan, ga, gb, plan.start_s, check_dt_s, cutoff_m)
-            if _memo is not None:
-                _memo[key] = (d, w)
-        if d < best:
-            best, where = d, w
-    return best, where
+        d, where = _pair_min_separation(plan, ga, gb, plan.start_s, cutoff_m)
+        if where is not None:
+            return d, where
+        best = min(best, d)
+    return best, None
 
 
-def schedule_groups(plan: GroupPlan, clearance_m: float, check_dt_s: float = 0.25, delay_step_s: float = 2.0,
-                    max_delay_s: float | None = None, max_rounds: int = 60) -> GroupPlan | None:
-    """A schedule under which particles of different groups stay ``clearance_m`` apart (plus the chord margin
-    of :func:`plan_min_separation`) for the whole plan, or None (module docstring). Deterministic."""
-    a_rel = 2.0 * plan.a_max
-    need = clearance_m + a_rel * check_dt_s ** 2 / 8.0
-    budget = float(max_delay_s) if max_delay_s is not None else 2.0 * float(np.max(plan.dur_g, initial=0.0)) + 10.0
-    start = plan.start_s.copy()
-    seen: set[tuple] = set()
-    memo: dict = {}
-    for _ in range(max_rounds):
-        cand = plan.with_schedule(start)
-        d, where = plan_min_separation(cand, check_dt_s, need, memo)
-        if where is None or d >= need:
-            # pairs the check did not list are at least `need` apart: the certificate is min(d, need, spacing)
-            cand.clearance_m = float(min(d, need, plan.spacing_m)) - a_rel * check_dt_s ** 2 / 8.0
-            return cand
-        ga, gb = int(plan.group[where[0]]), int(plan.group[where[1]])
-        t = where[2]
-        parked = [t < start[g] for g in (ga, gb)]                      # still at its start at the conflict
-        done = [t >= start[g] + plan.dur_g[g] for g in (ga, gb)]        # already at its site
-        if parked[0] != parked[1]:
-            # one crosses the other's start area: the parked one goes first (it leaves, then the other passes)
-            first, other = (ga, gb) if parked[0] else (gb, ga)
-            if start[first] > 0.0:
-                start[first] = max(0.0, start[first] - delay_step_s)
-            else:
-                start[other] += delay_step_s
-            late = other
-        elif done[0] != done[1]:
-            # one crosses the other's site block: the mover must pass before the other arrives
-            mover, fixed = (gb, ga) if done[0] else (ga, gb)
-            if start[mover] > 0.0:
-                start[mover] = max(0.0, start[mover] - delay_step_s)
-            else:
-                start[fixed] += delay_step_s
-            late = fixed
-        else:
-            # both moving: delay the one whose delay opens the gap more (one step ahead; ties to the higher index)
-            best_d, late = -1.0, max(ga, gb)
-            for g in (max(ga, gb), min(ga, gb)):
-                trial = start.copy()
-                trial[g] += delay_step_s
-                d_g, _ = plan_min_separation(plan.with_schedule(trial), check_dt_s, need, memo)
-                if d_g > best_d:
-                    best_d, late = d_g, g
-            start[late] += delay_step_s
-        key = tuple(np.round(start, 6))
-        if start[late] > budget or key in seen:
-            return None
-        seen.add(key)
-    return None
+def schedule_groups(plan: GroupPlan, clearance_m: float, delay_step_s: float = 2.0,
+                    max_delay_s: float | None = None, max_pair_checks: int = 400,
+                    max_nodes: int = 20000) -> GroupPlan | None:
+    """A schedule under which particles of different groups stay ``clearance_m`` apart for the whole plan, or None.
+    Deterministic (every UAV finds the same).
+
+    Two groups' separation depends only on their start offset tau = T_b - T_a, and only for tau inside
+    (-dur_b, dur_a): beyond it one group has finished (or not begun) before the other moves, and every larger
+    offset looks the same. The start times are searched on a grid of ``delay_step_s`` in [0, max_delay_s] by
+    depth-first backtracking (groups by index, earliest time first), each pair's feasibility at an offset
+    computed once (:func:`_pair_min_separation`) and at most ``max_pair_checks`` times in all, the search
+    visiting at most ``max_nodes`` (group, start time) choices; the schedule found
+    is shifted so that the earliest group starts at 0 and checked once more as a whole."""
+    need = float(clearance_m)
+    h = float(delay_step_s)
+    budget = float(max_delay_s) if max_delay_s is not None else float(np.sum(plan.dur_g)) + h
+    grid = np.arange(0.0, budget + 0.5 * h, h)
+    pairs = _candidate_group_pairs(plan, need)
+    partners: list[list[int]] = [[] for _ in range(plan.G)]
+    for a, b in pairs:
+        partners[b].append(a)                    # b > a: checked when b is placed, a already is
+    memo: dict[tuple[int, int, float], bool] = {}
+    checks = [0, 0]                              # pair checks computed, search nodes visited
+
+    def ok(a: int, b: int, ta: float, tb: float) -> bool:
+        tau = tb - ta
+        hi = math.ceil(plan.dur_g[a] / h) * h + h      # b starts after a has stopped: all alike
+        lo = -(math.ceil(plan.dur_g[b] / h) * h + h)
+        tau = float(min(max(tau, lo), hi))
+        key = (a, b, tau)
+        if key not in memo:
+            if checks[0] >= max_pair_checks:
+                raise _SearchExhausted
+            checks[0] += 1
+            st = np.zeros(plan.G)
+            st[a], st[b] = max(-tau, 0.0), max(tau, 0.0)
+            memo[key] = _pair_min_separation(plan, a, b, st, need)[1] is None
+        return memo[key]
+
+    start = np.zeros(plan.G)
+
+    def place(g: int) -> bool:
+        if g == plan.G:
+            return True
+        for t in grid:
+            checks[1] += 1
+            if checks[1] > max_nodes:
+                raise _SearchExhausted
+            if all(ok(a, g, start[a], t) for a in partners[g]):
+                start[g] = t
+                if place(g + 1):
+                    return True
+        return False
+
+    try:
+        found = place(0)
+    except _SearchExhausted:
+        found = False
+    if not found:
+        return None
+    start -= start.min()
+    cand = plan.with_schedule(start)
+    if plan_min_separation(cand, need)[1] is not None:   # cannot happen if the pair checks are right; refuse rather than trust
+        return None
+    cand.clearance_m = float(min(need, plan.spacing_m))
+    return cand
+
+
+class _SearchExhausted(Exception):
+    pass
 
 
 def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostParams, v_max_m_s: float,
@@ -284,4 +315,43 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
     plan = GroupPlan(S0, sites_m, dt_s, cost, v_max_m_s, a_kin_max_m_s2)
     if plan.G < 2 or not np.isfinite(plan.spacing_m) or plan.spacing_m <= 0:
         return None            # one group: its rigid translation is rigid_plan's (DefaultPreset.rigid_translation)
-    return schedule_groups(plan, clearance_fraction * plan.spacing_m, **schedule_kw)
+    for via in (None, slide_out_waypoints, expand_waypoints):
+        if via is not None:
+            plan.set_waypoints(via(plan))
+        out = schedule_groups(plan, clearance_fraction * plan.spacing_m, **schedule_kw)
+        if out is not None:
+            return out
+    return None
+
+
+def expand_waypoints(plan: GroupPlan, factor: float = 3.0) -> list[np.ndarray]:
+    """One waypoint per group: its centroid moved away from the swarm's centroid C to C + factor (c_g - C) (the
+    groups spread out as in a homothety, each keeping its shape), then straight to the site. Groups side by side
+    move apart along the line between them, so none crosses another while spreading; the second legs come in from
+    outside the start region."""
+    cen = np.array([plan.r0[plan.group == g].mean(axis=0) for g in range(plan.G)])
+    C = plan.r0.mean(axis=0)
+    return [((factor - 1.0) * (cen[g] - C))[None, :] for g in range(plan.G)]
+
+
+def slide_out_waypoints(plan: GroupPlan) -> list[np.ndarray]:
+    """One waypoint per group: slide along the group's long axis (the principal axis of its start points), towards its
+    site's side, until the group is clear of every start point of the swarm, then fly straight to the site. Groups that
+    start side by side (bands) slide parallel to each other, so none crosses another's start area; the second legs start
+    outside the start region, where waiting can separate them (:func:`schedule_groups`)."""
+    out = []
+    for g in range(plan.G):
+        pts = plan.r0[plan.group == g]
+        c = pts.mean(axis=0)
+        if pts.shape[0] > 1:
+            cov = np.cov((pts - c).T)
+            w, v = np.linalg.eigh(cov)
+            axis = v[:, int(np.argmax(w))]
+        else:
+            axis = np.array([1.0, 0.0])
+        if float(axis @ plan.d_g[g]) < 0.0 or (float(axis @ plan.d_g[g]) == 0.0 and axis[0] + axis[1] < 0):
+            axis = -axis
+        lead = float(np.max((plan.r0 - c) @ axis))             # the swarm's start region ahead of the group's centroid
+        trail = float(np.max((c - pts) @ axis))                # the group's own extent behind its centroid
+        out.append((lead + trail + 2.0 * plan.spacing_m) * axis[None, :])
+    return out
