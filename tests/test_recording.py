@@ -366,3 +366,9 @@ def test_check_tlog_frames_records_and_names_a_cut_or_corrupt_one(tmp_path):
     stamp.write_bytes(bytes(8) + data[8:])
     with pytest.raises(TlogError, match="corrupt: record 0 at offset 0 has no UNIX time stamp"):
         check_tlog(stamp)
+
+
+def test_the_recording_draws_the_scenarios_default_safety_radius():
+    from mfg_swarm import recording, scenarios
+
+    assert recording.DEFAULT_SAFETY_RADIUS_M == scenarios.DEFAULT_SAFETY_RADIUS_M
