@@ -43,8 +43,10 @@ __all__ = ["RecordingError", "FlightRecord", "RecordingSummary", "load_run", "wr
 MCAP_NAME = "flight.mcap"
 DEFAULT_ALTITUDE_AGL_M = 0.0
 """Height drawn for a built-in scenario (the plant is planar; a mission gives each group's cruise altitude)."""
+DEFAULT_SAFETY_RADIUS_M = 0.05
+"""scenarios.DEFAULT_SAFETY_RADIUS_M, the sphere drawn without a mission (not imported: mfg_swarm.scenarios pulls in the
+guidance room and numba, 0.6 s of a convert's start; tests/test_recording.py checks the two agree)."""
 
-_DEFAULT_SAFETY_RADIUS_M = 0.05      # scenarios.DEFAULT_SAFETY_RADIUS_M (not imported: scenarios pulls in the mission room anyway)
 
 
 class RecordingError(ValueError):
@@ -306,7 +308,7 @@ def load_run(run_dir: str | Path, *, mission=None, datum: GeodeticPoint | None =
     else:
         alt = np.asarray(metrics.get("altitude_agl_m", DEFAULT_ALTITUDE_AGL_M), dtype=float) * np.ones(n)
     r = safety_radius_m if safety_radius_m is not None else (
-        mission.safety_radius_m if mission is not None else metrics.get("safety_radius_m") or _DEFAULT_SAFETY_RADIUS_M)
+        mission.safety_radius_m if mission is not None else metrics.get("safety_radius_m") or DEFAULT_SAFETY_RADIUS_M)
     return FlightRecord(traj=traj, metrics=metrics, datum=datum, safety_radius_m=float(r), altitude_agl_m=alt,
                         t0_unix_s=t0_unix, backstop_active=None if backstop is None else np.asarray(backstop, dtype=bool),
                         controller_logs=logs, source=source)

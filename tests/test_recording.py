@@ -338,3 +338,37 @@ def test_run_live_serves_every_vehicle_over_the_foxglove_websocket_protocol(live
     for i in range(4):
         for t_s, xy in live_run.states[i].items():
             np.testing.assert_allclose(xy, traj.pos_m[round(t_s / traj.dt_s), i], rtol=0, atol=1e-9)
+
+
+def test_check_tlog_frames_records_and_names_a_cut_or_corrupt_one(tmp_path):
+    from mavlink_bridge import TlogError, TlogWriter, check_tlog
+
+    def v2_packet(payload: bytes, msg_id: int = 32) -> bytes:     # framing only: check_tlog does not verify the CRC
+        return bytes([0xFD, len(payload), 0, 0, 7, 1, 1]) + msg_id.to_bytes(3, "little") + payload + b"\x00\x00"
+
+    good = tmp_path / "good.tlog"
+    with TlogWriter(good) as w:
+        for k in range(3):
+            w.write(v2_packet(bytes(28)), unix_time_s=1.8e9 + k)
+    info = check_tlog(good)
+    assert info.n_records == 3 and info.first_unix_s == 1.8e9 and info.last_unix_s == 1.8e9 + 2
+    data = good.read_bytes()
+    record = len(data) // 3
+    cut = tmp_path / "cut.tlog"
+    cut.write_bytes(data[:-3])
+    with pytest.raises(TlogError, match=rf"cut.tlog: truncated: record 2 at offset {2 * record}"):
+        check_tlog(cut)
+    bad = tmp_path / "bad.tlog"
+    bad.write_bytes(data[:record] + data[record:record + 8] + b"\x55" + data[record + 9:])
+    with pytest.raises(TlogError, match=rf"bad.tlog: corrupt: record 1 at offset {record} does not hold a MAVLink packet"):
+        check_tlog(bad)
+    stamp = tmp_path / "stamp.tlog"
+    stamp.write_bytes(bytes(8) + data[8:])
+    with pytest.raises(TlogError, match="corrupt: record 0 at offset 0 has no UNIX time stamp"):
+        check_tlog(stamp)
+
+
+def test_the_recording_draws_the_scenarios_default_safety_radius():
+    from mfg_swarm import recording, scenarios
+
+    assert recording.DEFAULT_SAFETY_RADIUS_M == scenarios.DEFAULT_SAFETY_RADIUS_M
