@@ -39,7 +39,7 @@ def test_bank_of_one_gives_bit_identical_actions_to_a_bank_of_n(rigid):
 
     from mfg_autopilot.guidance.rigid_plan import RigidPlan
 
-    preset = replace(DEFAULT, rigid_plan=rigid)
+    preset = replace(DEFAULT, rigid_plan=rigid, group_plan=rigid)
     sc = make_scenario("crossing", 10)
     n = sc.n
     plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=3)
@@ -204,7 +204,7 @@ def test_a_gust_that_blows_everyone_alike_does_not_trigger_the_unplanned_respons
     S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=0).states)
     ids = np.arange(sc.n)
 
-    interacting = dataclasses.replace(DEFAULT, rigid_plan=False)      # the plan whose groups pass through each other
+    interacting = dataclasses.replace(DEFAULT, rigid_plan=False, group_plan=False)      # the plan whose groups pass through each other
 
     def backstop_rows(offset_fn, preset=interacting, k0=34):
         c = make_controller("mfg", preset, sc.destination_m)
