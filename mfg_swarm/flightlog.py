@@ -132,3 +132,18 @@ def realtime_grid(track: VehicleTrack, t0_unix_s: float, dt_s: float, steps: int
         ok = idx >= 0
         acc[ok] = track.sp_acc[idx[ok]]
     return states, acc
+
+
+def read_new_lines(path: Path, offset: int) -> tuple[list[bytes], int]:
+    """The complete lines a growing log (a controller's JSON Lines) gained since byte ``offset``, and the offset after
+    the last of them (a line still being written is left for the next call). No file yet: ([], offset)."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            data = fh.read()
+    except FileNotFoundError:
+        return [], offset
+    cut = data.rfind(b"\n")
+    if cut < 0:
+        return [], offset
+    return data[: cut + 1].splitlines(), offset + cut + 1

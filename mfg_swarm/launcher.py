@@ -34,7 +34,7 @@ import numpy as np
 from mfg_autopilot.presets import make_controller, preset_by_name
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
-from .flightlog import lockstep_grid, read_controller_log, read_vehicle_tlog, realtime_grid
+from .flightlog import lockstep_grid, read_controller_log, read_new_lines, read_vehicle_tlog, realtime_grid
 from .results import METRIC_KEYS, Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
 from .scenarios import Scenario
 from .sim import plant_params_for
@@ -334,17 +334,8 @@ _STEP_PREFIX = re.compile(rb'\{"type":"step","step":(\d+),"time_s":([-+0-9.eE]+)
 def _controller_status(paths: list[Path], offsets: list[int], state: list[dict]) -> None:
     """Read new lines of each controller log (incrementally) into state[i]."""
     for i, p in enumerate(paths):
-        try:
-            with open(p, "rb") as fh:
-                fh.seek(offsets[i])
-                data = fh.read()
-        except FileNotFoundError:
-            continue
-        cut = data.rfind(b"\n")
-        if cut < 0:
-            continue
-        offsets[i] += cut + 1
-        for line in data[: cut + 1].splitlines():
+        lines, offsets[i] = read_new_lines(p, offsets[i])
+        for line in lines:
             m = _STEP_PREFIX.match(line)
             if m is not None:      # a step record: only its step and time are needed (not its ~2 KB of weights)
                 state[i]["step"] = int(m.group(1))

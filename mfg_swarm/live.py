@@ -20,6 +20,7 @@ import numpy as np
 
 from mfg_autopilot.mission import DEFAULT_DATUM, GeodeticPoint
 
+from .flightlog import read_new_lines
 from .recording import DEFAULT_ALTITUDE_AGL_M, InstantPublisher, RecordingChannels
 
 __all__ = ["LiveView", "DEFAULT_LIVE_PORT"]
@@ -69,17 +70,8 @@ class LiveView:
     def poll(self) -> int:
         """Read the controllers' new log lines; publish every instant all of them have reached. Returns how many."""
         for i, p in enumerate(self.paths):
-            try:
-                with open(p, "rb") as fh:
-                    fh.seek(self._offsets[i])
-                    data = fh.read()
-            except FileNotFoundError:
-                continue
-            cut = data.rfind(b"\n")
-            if cut < 0:
-                continue
-            self._offsets[i] += cut + 1
-            for line in data[: cut + 1].splitlines():
+            lines, self._offsets[i] = read_new_lines(p, self._offsets[i])
+            for line in lines:
                 if not line.startswith(b'{"type":"step"'):
                     continue
                 try:

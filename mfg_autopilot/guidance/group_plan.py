@@ -37,13 +37,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mfg_autopilot.guidance.planner import min_spacing_m
-from mfg_autopilot.guidance.rigid_plan import _duration, trapezoid
+from mfg_autopilot.guidance.rigid_plan import TimedPlan, _duration, trapezoid
 from mfg_autopilot.paper.params import CostParams
 
 __all__ = ["GroupPlan", "group_plan_for", "plan_min_separation", "schedule_groups", "slide_out_waypoints", "expand_waypoints"]
 
 
-class GroupPlan:
+class GroupPlan(TimedPlan):
     """Time-staggered rigid group translations (module docstring). Same face as ``RigidPlan``:
     ``states`` at step k, ``action()``, ``advance()``, ``slots_m``, ``group``, ``sites_m``, ``spacing_m``,
     ``N``, ``k``; plus ``start_s`` (G,) the schedule and ``clearance_m`` the certified clearance."""
@@ -110,17 +110,15 @@ class GroupPlan:
             tau -= dur
         return self.d_g[g].copy(), zero, zero
 
-    def offsets_at(self, t: float, groups=None) -> np.ndarray:
-        """Each group's centroid offset from its start at time t, (G, 2) (rows of ``groups`` only, if given)."""
-        gs = range(self.G) if groups is None else groups
-        return np.array([self.group_motion(g, t - float(self.start_s[g]))[0] for g in gs]).reshape(-1, 2)
+    def offsets_at(self, t: float) -> np.ndarray:
+        """Each group's centroid offset from its start at time t, (G, 2)."""
+        return np.array([self.group_motion(g, t - float(self.start_s[g]))[0] for g in range(self.G)]).reshape(-1, 2)
 
     def with_schedule(self, start_s: np.ndarray) -> "GroupPlan":
         """The same plan with another schedule (G,)."""
         out = GroupPlan.__new__(GroupPlan)
         out.__dict__.update(self.__dict__)
         out.start_s = np.asarray(start_s, dtype=float).reshape(self.G).copy()
-        out.via_m, out.legs, out.dur_g = self.via_m, self.legs, self.dur_g
         out.T = float(np.max(out.start_s + self.dur_g)) if self.G else 0.0
         out.k, out._cache, out.clearance_m = 0, None, float("nan")
         return out
@@ -128,10 +126,6 @@ class GroupPlan:
     def positions_at(self, t: float) -> np.ndarray:
         """Every particle's position at time t without the common offset (it changes no distance), (N, 2)."""
         return self.r0 + self.offsets_at(t)[self.group]
-
-    def _offset(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        e = math.exp(-t / self.tau)
-        return self.v0 * t * e, self.v0 * (1.0 - t / self.tau) * e, self.v0 * (t / self.tau - 2.0) / self.tau * e
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Every particle's state (N, 4) and kinematic acceleration (N, 2) at time t."""
@@ -142,24 +136,6 @@ class GroupPlan:
         vel = gv[self.group] + wd[None, :]
         acc = ga[self.group] + wdd[None, :]
         return np.concatenate([pos, vel], axis=1), acc
-
-    def _now(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._cache is None or self._cache[0] != self.k:
-            s, a = self.at(self.k * self.dt_s)
-            self._cache = (self.k, s, a)
-        return self._cache[1], self._cache[2]
-
-    @property
-    def states(self) -> np.ndarray:
-        return self._now()[0]
-
-    def action(self) -> np.ndarray:
-        """Kinematic acceleration plus the model's wind drag c0 (v - v_o) (eq. 9 without noise follows the plan)."""
-        s, a = self._now()
-        return a + self.cost.c0_per_s * (s[:, 2:4] - self.cost.v_o[None, :])
-
-    def advance(self) -> None:
-        self.k += 1
 
 
 def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray, cutoff_m: float,

@@ -37,7 +37,7 @@ import numpy as np
 from mfg_autopilot.guidance.planner import min_spacing_m
 from mfg_autopilot.paper.params import CostParams
 
-__all__ = ["RigidPlan", "rigid_plan_for", "trapezoid"]
+__all__ = ["TimedPlan", "RigidPlan", "rigid_plan_for", "trapezoid"]
 
 
 def trapezoid(distance: float, v_max: float, a_max: float, t: float) -> tuple[float, float, float]:
@@ -68,7 +68,44 @@ def _duration(distance: float, v_max: float, a_max: float) -> float:
     return 2.0 * v / a_max + (distance - v * v / a_max) / v
 
 
-class RigidPlan:
+class TimedPlan:
+    """What a plan given in closed form of time shares (``RigidPlan``, ``group_plan.GroupPlan``): the common offset
+    w(t) of the swarm's mean start velocity, the state at step k (computed once per step), the command and the step
+    counter. A subclass sets r0-independent fields ``v0`` (2,), ``tau``, ``dt_s``, ``cost``, ``k`` = 0,
+    ``_cache`` = None and defines ``at(t) -> (states (N, 4), kinematic acceleration (N, 2))``."""
+
+    def _offset(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The common offset w(t), its rate and acceleration, (2,) each: the swarm's mean start velocity v0
+        (the wind's), decaying with tau (common to every particle: the plan stays rigid)."""
+        tau = self.tau
+        e = math.exp(-t / tau)
+        return self.v0 * t * e, self.v0 * (1.0 - t / tau) * e, self.v0 * (t / tau - 2.0) / tau * e
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _now(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._cache is None or self._cache[0] != self.k:
+            s, a = self.at(self.k * self.dt_s)
+            self._cache = (self.k, s, a)
+        return self._cache[1], self._cache[2]
+
+    @property
+    def states(self) -> np.ndarray:
+        """Plan states at step k, (N, 4)."""
+        return self._now()[0]
+
+    def action(self) -> np.ndarray:
+        """The plan's command at step k (N, 2): the kinematic acceleration plus the model's wind drag
+        c0 (v - v_o), so that eq. 9 without noise follows the plan."""
+        s, a = self._now()
+        return a + self.cost.c0_per_s * (s[:, 2:4] - self.cost.v_o[None, :])
+
+    def advance(self) -> None:
+        self.k += 1
+
+
+class RigidPlan(TimedPlan):
     """The rigid-motion plan (module docstring). Same face as ``MeanFieldPlan``: ``states`` at step k,
     ``action()``, ``advance()``, ``slots_m``, ``group``, ``sites_m``, ``spacing_m``, ``N``, ``k``."""
 
@@ -105,13 +142,6 @@ class RigidPlan:
         self.rep_active = np.zeros(self.N, dtype=bool)
         self._cache: tuple[int, np.ndarray, np.ndarray] | None = None
 
-    def _offset(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The common offset w(t), its rate and acceleration, (2,) each: the swarm's mean start velocity v0
-        (the wind's), decaying with tau (common to every particle: the plan stays rigid)."""
-        tau = self.tau
-        e = math.exp(-t / tau)
-        return self.v0 * t * e, self.v0 * (1.0 - t / tau) * e, self.v0 * (t / tau - 2.0) / tau * e
-
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Every particle's state (N, 4) and kinematic acceleration (N, 2) at time t."""
         w, wd, wdd = self._offset(t)
@@ -130,26 +160,6 @@ class RigidPlan:
             vel = np.broadcast_to(sd * self.u + wd, (self.N, 2)).copy()
             acc = np.broadcast_to(sdd * self.u + wdd, (self.N, 2)).copy()
         return np.concatenate([pos, vel], axis=1), acc
-
-    def _now(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._cache is None or self._cache[0] != self.k:
-            s, a = self.at(self.k * self.dt_s)
-            self._cache = (self.k, s, a)
-        return self._cache[1], self._cache[2]
-
-    @property
-    def states(self) -> np.ndarray:
-        """Plan states at step k, (N, 4)."""
-        return self._now()[0]
-
-    def action(self) -> np.ndarray:
-        """The plan's command at step k (N, 2): the kinematic acceleration plus the model's wind drag
-        c0 (v - v_o), so that eq. 9 without noise follows the plan."""
-        s, a = self._now()
-        return a + self.cost.c0_per_s * (s[:, 2:4] - self.cost.v_o[None, :])
-
-    def advance(self) -> None:
-        self.k += 1
 
 
 def rigid_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostParams, v_max_m_s: float,
