@@ -78,14 +78,51 @@ def test_a_site_on_another_groups_path_is_solved_by_order():
     assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
 
 
-def test_a_swap_through_each_other_has_no_schedule():
-    """Given two groups each flying through the other's start area onto it (a head-on swap along one line,
-    not a half turn: different distances), no waiting separates them: the planner says so (None)."""
+def test_a_swap_through_each_other_is_routed_around():
+    """Given two groups each flying through the other's start area to beyond it (a head-on swap along one line, not a
+    half turn: different distances), no waiting separates their straight paths; routed around each other's parked
+    places (routed_waypoints), the groups get a schedule, and a brute-force check of every pair keeps its clearance."""
     a = grid_positions(4, 1.5, (-20.0, 0.0))
     b = grid_positions(4, 1.5, (20.0, 0.0))
     pos = np.concatenate([a, b])
     sites = np.concatenate([np.tile([25.0, 0.0], (4, 1)), np.tile([-30.0, 0.0], (4, 1))])
-    assert group_plan_for(_rest(pos), sites, 0.5, COST, V, A) is None
+    assert schedule_groups(GroupPlan(_rest(pos), sites, 0.5, COST, V, A), 0.75 * 1.5) is None
+    plan = group_plan_for(_rest(pos), sites, 0.5, COST, V, A, clearance_fraction=0.75)
+    assert plan is not None and any(len(v) for v in plan.via_m)
+    assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
+    s_end, _ = plan.at(plan.T + 60.0)
+    assert np.allclose(s_end[:, 0:2], plan.slots_m, atol=1e-6)
+
+
+def test_each_site_on_the_others_start_is_a_swap_flown_together():
+    """Given two groups each of whose slot blocks lies on the other's start area (and not a half turn), each must
+    leave before the other arrives: neither can wait for the other to finish, so the schedule has them fly at once,
+    along routes around each other, and a brute-force check of every pair keeps the certified clearance."""
+    a = grid_positions(4, 1.5, (-20.0, 0.0))
+    b = grid_positions(4, 1.5, (20.0, 0.0))
+    pos = np.concatenate([a, b])
+    sites = np.concatenate([np.tile([20.0, 0.0], (4, 1)), np.tile([-20.0, 1.0], (4, 1))])
+    plan = group_plan_for(_rest(pos), sites, 0.5, COST, V, A, clearance_fraction=0.75)
+    assert plan is not None and abs(plan.start_s[0] - plan.start_s[1]) < min(plan.dur_g)
+    assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
+
+
+@settings(max_examples=12, deadline=None, derandomize=True)
+@given(n=st.integers(12, 90), seed=st.integers(0, 2**31 - 1))
+def test_property_every_random_layout_gets_a_certified_plan(n, seed):
+    """Given any layout of the ``random`` family (bands of random starts, several groups sharing sites), the planner
+    finds a plan (the routed paths always have one: docs/default_controller.md), and a brute-force check of every pair
+    keeps the certified clearance, with every particle ending on its slot."""
+    sc = make_scenario("random", n, seed=seed)
+    s0 = _rest(sc.initial_pos_m)
+    plan = GroupPlan(s0, sc.destination_m, 0.5, COST, V, A)
+    if plan.G < 2:
+        return                                          # one group: rigid_plan's translation
+    plan = group_plan_for(s0, sc.destination_m, 0.5, COST, V, A, clearance_fraction=0.75)
+    assert plan is not None
+    assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
+    s_end, _ = plan.at(plan.T + 60.0)
+    assert np.allclose(s_end[:, 0:2], plan.slots_m, atol=1e-6)
 
 
 @settings(max_examples=20, deadline=None, derandomize=True)

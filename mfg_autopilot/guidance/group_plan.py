@@ -40,7 +40,8 @@ from mfg_autopilot.guidance.planner import min_spacing_m
 from mfg_autopilot.guidance.rigid_plan import TimedPlan, _duration, trapezoid
 from mfg_autopilot.paper.params import CostParams
 
-__all__ = ["GroupPlan", "group_plan_for", "plan_min_separation", "schedule_groups", "slide_out_waypoints", "expand_waypoints"]
+__all__ = ["GroupPlan", "group_plan_for", "plan_min_separation", "schedule_groups", "slide_out_waypoints", "expand_waypoints",
+           "spread_slide_waypoints", "separating_axis"]
 
 
 class GroupPlan(TimedPlan):
@@ -66,6 +67,7 @@ class GroupPlan(TimedPlan):
         self.slots_m = self.sites_m + self.r0 - cen[self.group]
         self.d_g = site_g - cen                          # each group's whole displacement (G, 2)
         self.v_max, self.a_max = float(v_max_m_s), float(a_kin_max_m_s2)
+        self.pre_m, self.pre_s = np.zeros((self.G, 2)), 0.0
         self.set_waypoints([np.zeros((0, 2))] * self.G)
         self.start_s = np.zeros(self.G) if start_s is None else np.asarray(start_s, dtype=float).reshape(self.G)
         self.T = float(np.max(self.start_s + self.dur_g)) if self.G else 0.0
@@ -79,13 +81,19 @@ class GroupPlan(TimedPlan):
         self.rep_active = np.zeros(self.N, dtype=bool)
         self._cache: tuple[int, np.ndarray, np.ndarray] | None = None
 
-    def set_waypoints(self, via_m: list[np.ndarray]) -> None:
+    def set_waypoints(self, via_m: list[np.ndarray], prelude_m: np.ndarray | None = None) -> None:
         """Each group's path: straight legs through its waypoints (offsets of its centroid from the start, (k, 2) each;
-        none: one straight leg to the site), every leg a rest-to-rest trapezoid, flown back to back."""
+        none: one straight leg to the site), every leg a rest-to-rest trapezoid, flown back to back from the group's
+        start time. ``prelude_m`` (G, 2): a first leg that every group flies *at once*, from t = 0, on one common time
+        profile (each group's offset a fixed multiple of it), before any scheduled start: the schedule then starts at
+        ``pre_s``, its end (:func:`spread_slide_waypoints`)."""
         self.via_m = [np.asarray(v, dtype=float).reshape(-1, 2) for v in via_m]
+        self.pre_m = np.zeros((self.G, 2)) if prelude_m is None else np.asarray(prelude_m, dtype=float).reshape(self.G, 2)
+        self._pre_len = float(np.max(np.linalg.norm(self.pre_m, axis=1))) if self.G else 0.0
+        self.pre_s = _duration(self._pre_len, self.v_max, self.a_max)
         self.legs: list[list[tuple[np.ndarray, float, float]]] = []      # per group: (start offset, direction * length, duration)
         for g in range(self.G):
-            pts = np.concatenate([np.zeros((1, 2)), self.via_m[g], self.d_g[g][None, :]])
+            pts = np.concatenate([self.pre_m[g][None, :], self.via_m[g], self.d_g[g][None, :]])
             legs = []
             for a, b in zip(pts[:-1], pts[1:]):
                 length = float(np.linalg.norm(b - a))
@@ -94,13 +102,24 @@ class GroupPlan(TimedPlan):
             self.legs.append(legs)
         self.dur_g = np.array([sum(leg[2] for leg in legs) for legs in self.legs])
         if hasattr(self, "start_s"):
+            self.start_s = np.maximum(self.start_s, self.pre_s)
             self.T = float(np.max(self.start_s + self.dur_g)) if self.G else 0.0
 
+    def motion(self, g: int, t: float, t_start: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Offset, velocity and acceleration (2,) each of group g's centroid at time t when its scheduled legs start at
+        t_start (>= pre_s): the common prelude until pre_s, then :meth:`group_motion`."""
+        if t < self.pre_s:
+            sp, sv, sa = trapezoid(self._pre_len, self.v_max, self.a_max, t)
+            u = self.pre_m[g] / self._pre_len
+            return sp * u, sv * u, sa * u
+        return self.group_motion(g, t - t_start)
+
     def group_motion(self, g: int, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Offset, velocity and acceleration (2,) each of group g's centroid tau seconds after its start."""
+        """Offset, velocity and acceleration (2,) each of group g's centroid tau seconds after its start (after the
+        prelude, if any)."""
         zero = np.zeros(2)
         if tau <= 0.0 or not self.legs[g]:
-            return zero, zero, zero
+            return (self.pre_m[g].copy() if tau <= 0.0 else self.d_g[g].copy()), zero, zero
         for a, vec, dur in self.legs[g]:
             if tau < dur:
                 length = float(np.linalg.norm(vec))
@@ -112,7 +131,7 @@ class GroupPlan(TimedPlan):
 
     def offsets_at(self, t: float) -> np.ndarray:
         """Each group's centroid offset from its start at time t, (G, 2)."""
-        return np.array([self.group_motion(g, t - float(self.start_s[g]))[0] for g in range(self.G)]).reshape(-1, 2)
+        return np.array([self.motion(g, t, float(self.start_s[g]))[0] for g in range(self.G)]).reshape(-1, 2)
 
     def with_schedule(self, start_s: np.ndarray) -> "GroupPlan":
         """The same plan with another schedule (G,)."""
@@ -129,7 +148,7 @@ class GroupPlan(TimedPlan):
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Every particle's state (N, 4) and kinematic acceleration (N, 2) at time t."""
-        m = [self.group_motion(g, t - float(self.start_s[g])) for g in range(self.G)]
+        m = [self.motion(g, t, float(self.start_s[g])) for g in range(self.G)]
         off, gv, ga = (np.array([x[i] for x in m]).reshape(-1, 2) for i in range(3))
         w, wd, wdd = self._offset(t)
         pos = self.r0 + off[self.group] + w[None, :]
@@ -156,11 +175,11 @@ def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray,
     v_rel = 2.0 * plan.v_max
     guard = cutoff_m + v_rel * min_step_s
     ta, tb = float(start_s[ga]), float(start_s[gb])
-    t = min(ta, tb)
+    t = 0.0 if plan.pre_s > 0.0 else min(ta, tb)
     t_end = max(ta + plan.dur_g[ga], tb + plan.dur_g[gb])
     best = float("inf")
     while True:
-        shift = plan.group_motion(ga, t - ta)[0] - plan.group_motion(gb, t - tb)[0]
+        shift = plan.motion(ga, t, ta)[0] - plan.motion(gb, t, tb)[0]
         d, j = tree.query(plan.r0[ia] + shift[None, :], k=1)
         k = int(np.argmin(d))
         dk = float(d[k])
@@ -176,10 +195,10 @@ def _candidate_group_pairs(plan: GroupPlan, cutoff_m: float) -> list[tuple[int, 
     """Pairs of groups whose swept areas (bounding box of the start and end layouts: a translation sweeps inside
     it) come within cutoff_m of each other: only those can ever conflict."""
     lo, hi = np.full((plan.G, 2), np.inf), np.full((plan.G, 2), -np.inf)
-    layouts = [plan.r0, plan.slots_m]
+    layouts = [plan.r0, plan.slots_m, plan.r0 + plan.pre_m[plan.group]]
     k_max = max((len(v) for v in plan.via_m), default=0)
     for k in range(k_max):                     # every waypoint layout (a group without one: its start again)
-        off = np.array([v[k] if len(v) > k else np.zeros(2) for v in plan.via_m])
+        off = np.array([v[k] if len(v) > k else plan.pre_m[g] for g, v in enumerate(plan.via_m)])
         layouts.append(plan.r0 + off[plan.group])
     for pts in layouts:
         for d in range(2):
@@ -225,7 +244,7 @@ def schedule_groups(plan: GroupPlan, clearance_m: float, delay_step_s: float = 2
     need = float(clearance_m)
     h = float(delay_step_s)
     budget = float(max_delay_s) if max_delay_s is not None else float(np.sum(plan.dur_g)) + h
-    grid = np.arange(0.0, budget + 0.5 * h, h)
+    grid = plan.pre_s + np.arange(0.0, budget + 0.5 * h, h)      # scheduled legs start after the common prelude
     pairs = _candidate_group_pairs(plan, need)
     partners: list[list[int]] = [[] for _ in range(plan.G)]
     for a, b in pairs:
@@ -243,8 +262,8 @@ def schedule_groups(plan: GroupPlan, clearance_m: float, delay_step_s: float = 2
             if checks[0] >= max_pair_checks:
                 raise _SearchExhausted
             checks[0] += 1
-            st = np.zeros(plan.G)
-            st[a], st[b] = max(-tau, 0.0), max(tau, 0.0)
+            st = np.full(plan.G, plan.pre_s)
+            st[a], st[b] = plan.pre_s + max(-tau, 0.0), plan.pre_s + max(tau, 0.0)
             memo[key] = _pair_min_separation(plan, a, b, st, need)[1] is None
         return memo[key]
 
@@ -269,7 +288,7 @@ def schedule_groups(plan: GroupPlan, clearance_m: float, delay_step_s: float = 2
         found = False
     if not found:
         return None
-    start -= start.min()
+    start -= start.min() - plan.pre_s
     cand = plan.with_schedule(start)
     if plan_min_separation(cand, need)[1] is not None:   # cannot happen if the pair checks are right; refuse rather than trust
         return None
@@ -291,13 +310,99 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
     plan = GroupPlan(S0, sites_m, dt_s, cost, v_max_m_s, a_kin_max_m_s2)
     if plan.G < 2 or not np.isfinite(plan.spacing_m) or plan.spacing_m <= 0:
         return None            # one group: its rigid translation is rigid_plan's (DefaultPreset.rigid_translation)
-    for via in (None, slide_out_waypoints, expand_waypoints):
+    need = clearance_fraction * plan.spacing_m
+    for via in (None, slide_out_waypoints, spread_slide_waypoints, expand_waypoints, routed_waypoints):
         if via is not None:
-            plan.set_waypoints(via(plan))
-        out = schedule_groups(plan, clearance_fraction * plan.spacing_m, **schedule_kw)
+            route = via(plan, need) if via is routed_waypoints else via(plan)
+            if route is None:
+                continue
+            plan.set_waypoints(*route) if isinstance(route, tuple) else plan.set_waypoints(route)
+        out = schedule_groups(plan, need, **schedule_kw)
+        if out is None and via is routed_waypoints:
+            out = sequential_schedule(plan, need)
         if out is not None:
             return out
     return None
+
+
+def separating_axis(plan: GroupPlan, coarse: int = 720) -> tuple[np.ndarray, np.ndarray] | None:
+    """(n, order): a unit direction along which the groups' start points lie in disjoint, ordered intervals (groups
+    that start as parallel bands), the groups sorted along it; None if there is none. The direction maximises the
+    smallest gap between consecutive intervals: a scan of ``coarse`` directions over the groups' convex hull vertices,
+    refined by a bounded scalar search around the best (the gap may be centimetres: bands cut from random points)."""
+    from scipy.optimize import minimize_scalar
+    from scipy.spatial import ConvexHull, QhullError
+
+    verts, lab = [], []
+    for g in range(plan.G):
+        pts = plan.r0[plan.group == g]
+        if pts.shape[0] >= 3:
+            try:
+                pts = pts[ConvexHull(pts).vertices]
+            except QhullError:          # collinear: every point is a hull point
+                pass
+        verts.append(pts)
+        lab.append(np.full(pts.shape[0], g))
+    V, L = np.concatenate(verts), np.concatenate(lab)
+
+    def margin(theta: float) -> tuple[float, np.ndarray]:
+        proj = V @ np.array([math.cos(theta), math.sin(theta)])
+        lo = np.full(plan.G, np.inf)
+        hi = np.full(plan.G, -np.inf)
+        np.minimum.at(lo, L, proj)
+        np.maximum.at(hi, L, proj)
+        order = np.argsort(lo + hi, kind="stable")
+        return float(np.min(lo[order[1:]] - hi[order[:-1]])), order
+
+    thetas = np.arange(coarse) * (math.pi / coarse)
+    scores = [margin(float(t))[0] for t in thetas]
+    k = int(np.argmax(scores))
+    h = math.pi / coarse
+    res = minimize_scalar(lambda t: -margin(t)[0], bounds=(thetas[k] - h, thetas[k] + h), method="bounded",
+                          options={"xatol": 1e-7})
+    theta = float(res.x) if -res.fun > scores[k] else float(thetas[k])
+    m, order = margin(theta)
+    if not m > 0.0:
+        return None
+    return np.array([math.cos(theta), math.sin(theta)]), order
+
+
+def spread_slide_waypoints(plan: GroupPlan, gap_factor: float = 2.0) -> tuple[list[np.ndarray], np.ndarray] | None:
+    """For groups that start as parallel bands (:func:`separating_axis`: normal n, tangent t): a common prelude that
+    spreads the bands apart along n until neighbouring bands are at least ``gap_factor`` x the spacing apart, then one
+    waypoint per group: slide along +-t (towards the site's side) until clear of the whole start region, then straight to
+    the site. None if the groups are not bands.
+
+    Why it is safe while flown (the schedule checks it anyway): in the prelude every band moves along n on one common
+    time profile, by amounts increasing with its rank, so two bands only move apart along the direction that already
+    separates them (every pairwise distance grows); in the slide, bands moving along t keep their n-projections, so two
+    bands stay at least their n-gap (>= ``gap_factor`` x spacing) apart however they slide. What is left to the schedule
+    is the last legs, which start outside the start region (interlocked bands: each crossing the other's start area,
+    which no waiting can order, are taken apart here)."""
+    sep = separating_axis(plan)
+    if sep is None:
+        return None
+    n, order = sep
+    tan = np.array([-n[1], n[0]])
+    proj = plan.r0 @ n
+    lo = np.array([proj[plan.group == g].min() for g in range(plan.G)])
+    hi = np.array([proj[plan.group == g].max() for g in range(plan.G)])
+    need = gap_factor * plan.spacing_m
+    shift = np.zeros(plan.G)
+    for k in range(1, plan.G):
+        gap = lo[order[k]] - hi[order[k - 1]]
+        shift[order[k]] = shift[order[k - 1]] + max(0.0, need - gap)
+    shift -= np.median(shift)
+    pre = shift[:, None] * n[None, :]
+    pt = plan.r0 @ tan
+    t_lo, t_hi = float(pt.min()), float(pt.max())
+    via = []
+    for g in range(plan.G):
+        own = pt[plan.group == g]
+        side = 1.0 if float(plan.d_g[g] @ tan) >= 0.0 else -1.0
+        slide = (t_hi + need - own.min()) if side > 0 else (own.max() - t_lo + need)
+        via.append((pre[g] + side * slide * tan)[None, :])
+    return via, pre
 
 
 def expand_waypoints(plan: GroupPlan, factor: float = 3.0) -> list[np.ndarray]:
@@ -331,3 +436,148 @@ def slide_out_waypoints(plan: GroupPlan) -> list[np.ndarray]:
         trail = float(np.max((c - pts) @ axis))                # the group's own extent behind its centroid
         out.append((lead + trail + 2.0 * plan.spacing_m) * axis[None, :])
     return out
+
+
+def _c_obstacle(parked: np.ndarray, shape: np.ndarray, clearance_m: float):
+    """The centroid positions at which a group of start offsets ``shape`` (k, 2) comes within clearance_m of the parked
+    points (m, 2): contained in the convex hull of their Minkowski difference, grown by clearance_m (a shapely
+    polygon)."""
+    import shapely
+    from scipy.spatial import ConvexHull, QhullError
+
+    def hull(p: np.ndarray) -> np.ndarray:
+        if p.shape[0] < 3:
+            return p
+        try:
+            return p[ConvexHull(p).vertices]
+        except QhullError:
+            return p
+    a, b = hull(parked), hull(-shape)
+    s = (a[:, None, :] + b[None, :, :]).reshape(-1, 2)
+    return shapely.MultiPoint(s).convex_hull.buffer(clearance_m, quad_segs=2)
+
+
+def _visibility_route(x0: np.ndarray, x1: np.ndarray, obstacles: list, margin_m: float) -> np.ndarray | None:
+    """The shortest polyline from x0 to x1 that crosses no obstacle (shapely polygons), through vertices of the
+    obstacles grown by margin_m (a visibility graph, edges checked lazily by Dijkstra): its inner points (k, 2), or
+    None if there is none."""
+    import heapq
+
+    import shapely
+    obstacles = [o for o in obstacles if not (o.contains(shapely.Point(x0)) or o.contains(shapely.Point(x1)))]
+    if not obstacles:
+        return np.zeros((0, 2))
+    union = shapely.union_all(obstacles)
+    nodes = [np.asarray(x0, float), np.asarray(x1, float)]
+    for o in obstacles:
+        ring = np.asarray(o.buffer(margin_m, join_style="mitre").exterior.coords)[:-1]
+        nodes.extend(ring)
+    P = np.array(nodes)
+    free = ~shapely.contains_xy(union, P[:, 0], P[:, 1])
+    free[0] = free[1] = True
+    shapely.prepare(union)
+    dist = np.full(P.shape[0], np.inf)
+    prev = np.full(P.shape[0], -1)
+    dist[0] = 0.0
+    done = np.zeros(P.shape[0], dtype=bool)
+    heap = [(0.0, 0)]
+    while heap:
+        d, u = heapq.heappop(heap)
+        if done[u]:
+            continue
+        done[u] = True
+        if u == 1:
+            break
+        cand = np.flatnonzero(free & ~done)
+        lines = shapely.linestrings(np.stack([np.broadcast_to(P[u], (cand.size, 2)), P[cand]], axis=1))
+        ok = ~shapely.intersects(union, lines)
+        for v in cand[ok]:
+            nd = d + float(np.linalg.norm(P[v] - P[u]))
+            if nd < dist[v]:
+                dist[v], prev[v] = nd, u
+                heapq.heappush(heap, (nd, int(v)))
+    if not np.isfinite(dist[1]):
+        return None
+    path, v = [], int(prev[1])
+    while v > 0:
+        path.append(P[v])
+        v = int(prev[v])
+    return np.array(path[::-1]).reshape(-1, 2)
+
+
+def routed_waypoints(plan: GroupPlan, clearance_m: float, gap_factor: float = 2.0) -> tuple[list[np.ndarray], np.ndarray] | None:
+    """Every group's path routed around every other group's parked places: for bands, the common spreading prelude of
+    :func:`spread_slide_waypoints` first; then each group's shortest path (visibility graph) from there to its site
+    that keeps it ``clearance_m`` (+ a margin) from every other group's start (after the prelude) and from every other
+    group's slot block. A place the group cannot avoid (its own site overlaps another group's start, or its start
+    another's site) is left to the order of the schedule.
+
+    Why it completes: a group flying such a path alone meets nobody (the others wait at their starts or sit at their
+    sites), so flying the groups one after another is conflict-free (:func:`sequential_schedule`), and the schedule
+    search may only do better. None if no such path exists for some group."""
+    spread = spread_slide_waypoints(plan, gap_factor)
+    pre = spread[1] if spread is not None else np.zeros((plan.G, 2))
+    cen = np.array([plan.r0[plan.group == g].mean(axis=0) for g in range(plan.G)])
+    margin = 0.25 * plan.spacing_m
+    via = []
+    for g in range(plan.G):
+        shape = plan.r0[plan.group == g] - cen[g]
+        obs = []
+        for h in range(plan.G):
+            if h != g:
+                obs.append(_c_obstacle(plan.r0[plan.group == h] + pre[h], shape, clearance_m + margin))
+                obs.append(_c_obstacle(plan.slots_m[plan.group == h], shape, clearance_m + margin))
+        path = _visibility_route(cen[g] + pre[g], cen[g] + plan.d_g[g], obs, margin)
+        if path is None:
+            return None
+        via.append(path - cen[g])
+    return via, pre
+
+
+def sequential_schedule(plan: GroupPlan, clearance_m: float, delay_step_s: float = 2.0) -> GroupPlan | None:
+    """The groups one after another, each starting as early as it keeps clear of those before it (at the latest when
+    they have all stopped), in an order that every pair allows
+    (a before b: a's whole path clear of b waiting at its start, b's clear of a at its site; checked by
+    :func:`_pair_min_separation`), the first allowed group by index first; checked once more as a whole. None if
+    some pair allows neither order, or the pairs' orders form a cycle."""
+    before = np.ones((plan.G, plan.G), dtype=bool)
+    for a in range(plan.G):
+        for b in range(a + 1, plan.G):
+            st = np.full(plan.G, plan.pre_s)
+            st[b] = plan.pre_s + plan.dur_g[a]
+            before[a, b] = _pair_min_separation(plan, a, b, st, clearance_m)[1] is None
+            st[a], st[b] = plan.pre_s + plan.dur_g[b], plan.pre_s
+            before[b, a] = _pair_min_separation(plan, a, b, st, clearance_m)[1] is None
+    left, order = list(range(plan.G)), []
+    while left:
+        g = next((g for g in left if all(before[g, h] for h in left if h != g)), None)
+        if g is None:
+            return None
+        order.append(g)
+        left.remove(g)
+    # list scheduling in that order: each group at the earliest time on a grid of delay_step_s at which it keeps
+    # clear of every group placed before it (one exists: right after all of them have stopped)
+    pairs = set(_candidate_group_pairs(plan, clearance_m))
+    start = np.full(plan.G, plan.pre_s)
+    placed: list[int] = []
+    for g in order:
+        t_last = max((start[a] + plan.dur_g[a] for a in placed), default=plan.pre_s)
+        t = plan.pre_s
+        while True:
+            if t >= t_last:
+                t = t_last
+            st = start.copy()
+            st[g] = t
+            if all(_pair_min_separation(plan, a, g, st, clearance_m)[1] is None
+                   for a in placed if (min(a, g), max(a, g)) in pairs):
+                break
+            if t >= t_last:          # cannot happen if the order's pair checks are right
+                return None
+            t += delay_step_s
+        start[g] = t
+        placed.append(g)
+    cand = plan.with_schedule(start)
+    if plan_min_separation(cand, clearance_m)[1] is not None:
+        return None
+    cand.clearance_m = float(min(clearance_m, plan.spacing_m))
+    return cand
