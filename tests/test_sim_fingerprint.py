@@ -7,6 +7,12 @@ single bit of any flight fails here. Regenerate it only for a change that is *me
 flights, and say so in the commit:
 
     .venv/bin/python tests/test_sim_fingerprint.py --write
+
+One array is compared by value instead of by bits (``APPROX``): ``w_H_ref``, the reference UAV's value-model
+weights, which the online NGD update (Algorithms 3/4) computes through numpy reductions whose last bits depend on
+the host's SIMD code path (measured: on another host this array alone changed bits while every trajectory, command
+and metric stayed bit-identical). Its sum, L2 norm and largest magnitude are compared to a relative 1e-6: a change
+of behaviour moves them far more.
 """
 
 from __future__ import annotations
@@ -35,20 +41,29 @@ CONFIGS = {
                                "--seed", "1"],
 }
 STEPS = "60"
+APPROX = ("w_H_ref",)       # compared by value (module docstring)
+
+
+def _summary(a: np.ndarray) -> list[float]:
+    a = np.asarray(a, dtype=np.float64)
+    return [float(a.sum()), float(np.linalg.norm(a)), float(np.max(np.abs(a))) if a.size else 0.0]
 
 
 def fingerprint(run_dir: Path) -> dict:
     """metrics.json without its wall time, and the SHA-256 of each trajectory array (dtype, shape, bytes)."""
     metrics = json.loads((run_dir / "metrics.json").read_text())
     metrics.pop("wall_s", None)
-    arrays = {}
+    arrays, approx = {}, {}
     with np.load(run_dir / "trajectories.npz") as z:
         for name in sorted(z.files):
             a = np.ascontiguousarray(z[name])
+            if name in APPROX:
+                approx[name] = _summary(a)
+                continue
             h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
             h.update(a.tobytes())
             arrays[name] = h.hexdigest()
-    return {"metrics": metrics, "arrays": arrays}
+    return {"metrics": metrics, "arrays": arrays, "approx": approx}
 
 
 def fly(args: list[str], out: Path) -> dict:
@@ -63,7 +78,10 @@ def test_simulator_output_is_bit_identical_to_the_stored_fingerprint(tmp_path, n
     stored = json.loads(DATA.read_text())[name]
     got = fly(CONFIGS[name], tmp_path / name)
     # every stored key identical; a key added later (a new array or metric) does not break the comparison
-    assert {k: got["arrays"].get(k, "<missing>") for k in stored["arrays"]} == stored["arrays"], f"{name}: trajectories changed"
+    bits = {k: v for k, v in stored["arrays"].items() if k not in APPROX}
+    assert {k: got["arrays"].get(k, "<missing>") for k in bits} == bits, f"{name}: trajectories changed"
+    for k, want in stored.get("approx", {}).items():
+        assert k in got["approx"] and np.allclose(got["approx"][k], want, rtol=1e-6, atol=0.0), f"{name}: {k} changed"
     assert {k: got["metrics"].get(k, "<missing>") for k in stored["metrics"]} == stored["metrics"], f"{name}: metrics changed"
 
 
