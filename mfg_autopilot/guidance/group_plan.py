@@ -158,20 +158,27 @@ class GroupPlan(TimedPlan):
 
 
 def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray, cutoff_m: float,
-                         min_step_s: float = 0.02) -> tuple[float, tuple[int, int, float] | None]:
+                         min_step_s: float = 0.02, lookahead_s: float = 1.0) -> tuple[float, tuple[int, int, float] | None]:
     """Whether groups ga and gb, started at start_s[ga] and start_s[gb], ever come closer than cutoff_m: (d, where).
 
     Sampled with a step that cannot miss an approach: at a sample where the two groups are d >= cutoff + 2 v_max
-    min_step apart (nearest pair, k-d tree of gb's start layout queried with ga's shifted points), no pair can get
+    min_step apart (the distance of their convex hulls, a lower bound; where that is below the guard, the nearest pair:
+    k-d tree of gb's start layout queried with ga's shifted points), no pair can get
     closer than cutoff before (d - cutoff) / (2 v_max) seconds (2 v_max bounds any relative speed: the common offset
     cancels), which is the next step. A sample closer than cutoff + 2 v_max min_step ends the check as a conflict
     (conservative by at most 2 v_max min_step). Before either group moves, and after both stopped, nothing changes.
     Returns (smallest sampled distance, None) if no conflict, else (that distance, (i, j, t)), i in ga, j in gb."""
+    import shapely
     ia, ib = np.flatnonzero(plan.group == ga), np.flatnonzero(plan.group == gb)
     trees = plan.__dict__.setdefault("_trees", {})
     if gb not in trees:
         trees[gb] = cKDTree(plan.r0[ib])
     tree = trees[gb]
+    hulls = plan.__dict__.setdefault("_hulls", {})
+    for g, idx in ((ga, ia), (gb, ib)):
+        if g not in hulls:
+            hulls[g] = shapely.MultiPoint(plan.r0[idx]).convex_hull
+    hull_a, hull_b = hulls[ga], hulls[gb]
     v_rel = 2.0 * plan.v_max
     guard = cutoff_m + v_rel * min_step_s
     ta, tb = float(start_s[ga]), float(start_s[gb])
@@ -180,12 +187,19 @@ def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray,
     best = float("inf")
     while True:
         shift = plan.motion(ga, t, ta)[0] - plan.motion(gb, t, tb)[0]
-        d, j = tree.query(plan.r0[ia] + shift[None, :], k=1)
-        k = int(np.argmin(d))
-        dk = float(d[k])
-        best = min(best, dk)
+        # the convex hulls' distance bounds every pair's from below and costs little: the points are queried only
+        # when the hulls come within the guard
+        dk = float(shapely.distance(shapely.transform(hull_a, lambda xy: xy + shift), hull_b))
         if dk < guard:
-            return dk, (int(ia[k]), int(ib[int(j[k])]), t)
+            # points farther than the bound are not resolved (the tree prunes them): all of them beyond it is a
+            # distance of at least the bound
+            bound = guard + v_rel * lookahead_s
+            d, j = tree.query(plan.r0[ia] + shift[None, :], k=1, distance_upper_bound=bound)
+            k = int(np.argmin(d))
+            dk = min(float(d[k]), bound)
+            if dk < guard:
+                return dk, (int(ia[k]), int(ib[int(j[k])]), t)
+        best = min(best, dk)
         if t >= t_end:
             return best, None
         t = min(t + max((dk - cutoff_m) / v_rel, min_step_s), t_end)
