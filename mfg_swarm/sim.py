@@ -212,6 +212,11 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     ids = np.arange(n)
     if getattr(ctrl, "uses_t0_exchange", not cfg.gossips):
         ctrl.exchange_t0(f32(plant.states), ids, ids, sc.destination_m)       # the t = 0 exchange
+        cert = getattr(ctrl, "plan_certificate", None) or {}
+        if cert.get("duration_s") is not None and cert["duration_s"] > cfg.steps * cfg.preset.dt_s:
+            print(f"[sim] note: the t = 0 plan ({cert['plan']}) takes {cert['duration_s']:.0f} s; --steps {cfg.steps} "
+                  f"flies {cfg.steps * cfg.preset.dt_s:.0f} s, so not every UAV will have arrived "
+                  f"(--steps {int(np.ceil(cert['duration_s'] / cfg.preset.dt_s)) + 20} would do)", file=sys.stderr)
         comm[0] += n - 1
     sensor_range_m = getattr(ctrl, "sensor_range_m", None)
     # HJB_d whose radio range covers the sensor range hears every vehicle it senses; a controller that ignores

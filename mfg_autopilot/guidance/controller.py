@@ -223,17 +223,19 @@ class DefaultMFGController(_DefaultBase):
 
     @property
     def plan_certificate(self) -> dict | None:
-        """What the t = 0 plan guarantees: {"plan": kind, "clearance_m": d} when it is conflict-free by construction
-        (every pair of particles at least d apart for the whole plan: the start/slot spacing for a rigid motion, the
-        space-time check's bound for scheduled groups), {"plan": "interacting", "clearance_m": None} otherwise."""
+        """What the t = 0 plan guarantees: {"plan": kind, "clearance_m": d, "duration_s": T} when it is conflict-free by
+        construction (every pair of particles at least d apart for the whole plan: the start/slot spacing for a rigid
+        motion, the space-time check's bound for scheduled groups; every particle on its slot from T on; scheduled
+        groups also name their ``route``), {"plan": "interacting", "clearance_m": None} otherwise."""
         if self.plan is None:
             return None
         if isinstance(self.plan, RigidPlan):
             sp = float(self.plan.spacing_m)
-            return {"plan": self.plan.kind, "clearance_m": sp if np.isfinite(sp) else None}
+            return {"plan": self.plan.kind, "clearance_m": sp if np.isfinite(sp) else None,
+                    "duration_s": float(self.plan.T)}
         if isinstance(self.plan, GroupPlan):
-            return {"plan": "groups", "clearance_m": float(self.plan.clearance_m),
-                    "group_start_s": [float(x) for x in self.plan.start_s]}
+            return {"plan": "groups", "clearance_m": float(self.plan.clearance_m), "duration_s": float(self.plan.T),
+                    "route": self.plan.route, "group_start_s": [float(x) for x in self.plan.start_s]}
         return {"plan": "interacting", "clearance_m": None}
 
     def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:

@@ -74,6 +74,7 @@ class GroupPlan(TimedPlan):
         self.spacing_m = float(min(min_spacing_m(self.slots_m), min_spacing_m(self.r0)))
         self.radius_m = 0.5 * self.spacing_m
         self.clearance_m = float("nan")
+        self.route = "straight"                          # which paths (group_plan_for's stages)
         self.dt_s, self.cost = float(dt_s), cost
         self.v0 = S0[:, 2:4].mean(axis=0) if self.N else np.zeros(2)
         self.tau = float(wind_tau_s)
@@ -331,6 +332,7 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
             if route is None:
                 continue
             plan.set_waypoints(*route) if isinstance(route, tuple) else plan.set_waypoints(route)
+            plan.route = via.__name__.removesuffix("_waypoints")
         out = schedule_groups(plan, need, **schedule_kw)
         if out is None and via is routed_waypoints:
             out = sequential_schedule(plan, need)
