@@ -132,6 +132,17 @@ class _DefaultBase:
             own_dev = np.linalg.norm(self._own_err * np.array([1.0, 1.0, ps, ps]), axis=1)
             idx = np.flatnonzero(unplanned & (own_dev[sn.owner] > bp.common_mode_min_own_dev_m))
             unplanned[idx] = self._unplanned(sn.states[idx] - self._own_err[sn.owner[idx]])
+        plan = getattr(self, "plan", None)
+        if plan is not None and sn.states.shape[0] and bp.own_slot_claim:
+            # a sensed vehicle on the own particle's place is not on the plan whatever particle it is near: the own
+            # vehicle is that particle (measured: a UAV failed in Hold on a group mate's slot was taken as that
+            # slot's particle, and the mate settled 0.06-0.2 m from it; merge N = 300, seed 4)
+            ps = bp.plan_mismatch_s
+            dx = sn.states - plan.states[self.own_index[sn.owner]]
+            d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
+            claim = d2 < min(bp.plan_mismatch_m, 0.5 * self._spacing_m()) ** 2
+            unplanned |= claim
+            planned &= ~claim
         if self._own_err is not None:
             # the planned vehicles' response assumes both fly the plan to within centimetres; a UAV blown
             # further off its own particle, or a neighbour off the plan by the common mode, is left to the
