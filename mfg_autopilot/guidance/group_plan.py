@@ -16,15 +16,18 @@ their start offset T_b - T_a; :func:`schedule_groups` searches start times on a 
 pair checked in space-time (:func:`_pair_min_separation`: sampled with steps that cannot miss an
 approach, so the clearance holds between samples too), and checks the plan found once more as a whole.
 Paths tried, in order (:func:`group_plan_for`): straight to the site; sliding out along the group's long
-axis first (:func:`slide_out_waypoints`); spreading out from the swarm's centroid first
-(:func:`expand_waypoints`). Everything is deterministic (groups by index, i.e. by site coordinates;
-bounded search), so every UAV computes the same plan from the t = 0 exchange.
+axis first (:func:`slide_out_waypoints`); for groups that start as parallel bands, a common prelude spreading
+them apart, then sliding along the bands out of the start region (:func:`spread_slide_waypoints`); spreading out
+from the swarm's centroid first (:func:`expand_waypoints`); the prelude, then each group's shortest path around
+every other group's parked places (:func:`routed_waypoints`), list-scheduled if the search finds nothing
+(:func:`sequential_schedule`). Everything is deterministic (groups by index, i.e. by site coordinates; bounded
+search), so every UAV computes the same plan from the t = 0 exchange.
 
 The plan either certifies a clearance (every pair of particles of different groups, for all t, at least
-``clearance_m`` apart; pairs within a group at their start distance) or fails: two groups each of which
-must cross the other's parked start area or site block cannot be separated by waiting;
-:func:`group_plan_for` then returns None and the controller keeps the interacting plan (no guarantee,
-and the flight's metrics say so: ``plan``).
+``clearance_m`` apart; pairs within a group at their start distance) or fails: e.g. two groups each landing on the
+other's start area, which neither order separates; :func:`group_plan_for` then returns None and the controller
+keeps the interacting plan (no guarantee, and the flight's metrics say so: ``plan``). Why the routed paths
+complete otherwise: docs/default_controller.md, "Why routed completes".
 
 Shapes: states (N, 4) [x_m, y_m, vx_m_s, vy_m_s]; accelerations (N, 2).
 """
