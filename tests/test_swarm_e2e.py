@@ -209,3 +209,26 @@ def test_swap4_process_swarm_of_36_flies_the_rigid_half_turn_without_collision(t
     b = np.load(tmp_path / "sim" / "trajectories.npz")["pos_m"]
     assert a.shape == b.shape and np.max(np.abs(a - b)) < POS_TOL_M
     _assert_no_children_left(before)
+
+
+@pytest.mark.slow
+def test_random_process_swarm_flies_the_scheduled_group_plan_without_collision(tmp_path):
+    """Issue 18: a `random` layout whose bands must first spread apart and slide out (route spread_slide, groups
+    started on a schedule), flown by real processes: every controller computes the same plan from the t = 0
+    exchange, 0 collided pairs, everyone in its slot, and the flight is the simulator's."""
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    args = ["--scenario", "random", "--n", "24", "--seed", "1", "--steps", "180"]
+    proc = _run(tmp_path / "run", *args, timeout=420)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0 and m["comm_states_per_uav"] == 23.0
+    assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]
+    sim = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", *args, "--out", str(tmp_path / "sim"), "--no-progress"],
+                         capture_output=True, text=True, timeout=300)
+    assert sim.returncode == 0, sim.stderr
+    ms = json.loads((tmp_path / "sim" / "metrics.json").read_text())
+    assert ms["plan"]["plan"] == "groups" and ms["plan"]["route"] == "spread_slide"
+    a = np.load(tmp_path / "run" / "trajectories.npz")["pos_m"]
+    b = np.load(tmp_path / "sim" / "trajectories.npz")["pos_m"]
+    assert a.shape == b.shape and np.max(np.abs(a - b)) < POS_TOL_M
+    _assert_no_children_left(before)
