@@ -101,3 +101,30 @@ def test_cpu_isolation_picks_only_the_named_controller_and_keeps_a_cpu_for_the_r
     assert not iso._is_isolated([x.format(10) for x in ctl])        # not a prefix match
     assert not iso._is_isolated(["python", "-m", "mock_vehicle.cli", "--instance", "0"])
     assert not iso._is_isolated(["python", "-m", "mfg_autopilot.runtime.cli", "--instance"])     # malformed: no value
+
+
+def test_readme_table_formats_the_sweep_and_a_later_file_wins(tmp_path):
+    """bench/readme_table.py: one row per (family, N), one cell per mode, 'not run' where no point exists; a point in a
+    later file replaces the same (family, N, mode, seed) of an earlier one."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("readme_table", Path(__file__).parents[1] / "bench" / "readme_table.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    base = {"family": "swap4", "n": 100, "seed": 1, "collision_pairs": 3, "min_separation_m": 0.0123,
+            "arrived_fraction": 0.5, "arrived_area_fraction": 1.0, "arrival_time_s": 63.0,
+            "motion_energy_per_uav": 700.4, "comm_states_per_uav": 39600.0, "wall_s": 2.2, "error": None}
+    a = tmp_path / "a.json"
+    b = tmp_path / "b.json"
+    a.write_text(json.dumps([{**base, "mode": "mfg"}, {**base, "mode": "orca", "comm_states_per_uav": 0.0}]))
+    b.write_text(json.dumps([{**base, "mode": "mfg", "collision_pairs": 0, "arrived_fraction": 1.0,
+                              "comm_states_per_uav": 99.0}]))
+    import contextlib
+    import io
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert mod.main([str(a), str(b)]) == 0
+    rows = buf.getvalue().splitlines()
+    assert rows[2] == ("| `swap4` | 100 | 0 / 0.012 m / 100 % (63 s) / 700 / 99 / 2 s | not run | "
+                       "3 / 0.012 m / 100 % (63 s) / 700 / 0 / 2 s |")
