@@ -653,5 +653,9 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     metrics["steps_requested"] = T
     metrics["backstop_activations"] = int(backstop.sum())
     metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
+    plans = [ev["plan"] for lg in logs for ev in lg.events if ev.get("what") == "t0_exchange" and "plan" in ev]
+    if plans:
+        metrics["plan"] = plans[0]                   # every controller computes the same plan from the same exchange
+        metrics["plans_agree"] = all(p == plans[0] for p in plans)
     metrics.update(start_spacing_m=cfg.scenario.min_start_spacing_m, slot_spacing_m=cfg.scenario.slot_spacing_m)
     return traj, metrics

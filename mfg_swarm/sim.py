@@ -213,6 +213,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     if getattr(ctrl, "uses_t0_exchange", not cfg.gossips):
         ctrl.exchange_t0(f32(plant.states), ids, ids, sc.destination_m)       # the t = 0 exchange
         cert = getattr(ctrl, "plan_certificate", None) or {}
+        if cert.get("plan") == "interacting" and n > 1:
+            print("[sim] note: no conflict-free plan was found for this layout (docs/default_controller.md, 'Separation by "
+                  "construction'); the interacting plan flies, with no separation guarantee", file=sys.stderr)
         if cert.get("duration_s") is not None and cert["duration_s"] > cfg.steps * cfg.preset.dt_s:
             print(f"[sim] note: the t = 0 plan ({cert['plan']}) takes {cert['duration_s']:.0f} s; --steps {cfg.steps} "
                   f"flies {cfg.steps * cfg.preset.dt_s:.0f} s, so not every UAV will have arrived "

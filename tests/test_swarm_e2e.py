@@ -222,6 +222,7 @@ def test_random_process_swarm_flies_the_scheduled_group_plan_without_collision(t
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0 and m["comm_states_per_uav"] == 23.0
+    assert m["plans_agree"] is True and m["plan"]["route"] == "spread_slide"
     assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]
     sim = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", *args, "--out", str(tmp_path / "sim"), "--no-progress"],
                          capture_output=True, text=True, timeout=300)

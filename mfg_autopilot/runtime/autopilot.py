@@ -171,7 +171,14 @@ class Autopilot:
             states = np.array([got[i].state for i in ids], dtype=float)
             own = int(np.flatnonzero(ids == cfg.instance)[0])
             self.ctrl.exchange_t0(states, ids, np.array([own]), self.sites[ids])
-            self.clog.event("t0_exchange", states_received=len(ids) - 1)
+            cert = getattr(self.ctrl, "plan_certificate", None)
+            if cert is not None:
+                self.clog.event("t0_exchange", states_received=len(ids) - 1, plan=cert)
+                if cert.get("plan") == "interacting" and len(ids) > 1:
+                    log.warning("no conflict-free plan for this layout: the interacting plan flies, with no separation "
+                                "guarantee (docs/default_controller.md, 'Separation by construction')")
+            else:
+                self.clog.event("t0_exchange", states_received=len(ids) - 1)
             self.n_t0 = len(ids) - 1
             return self.n_t0
         self.exchange.wait_present(range(cfg.n), timeout_s=cfg.exchange_timeout_s, stop=self.stop)
