@@ -19,7 +19,8 @@ Paths tried, in order (:func:`group_plan_for`): straight to the site; sliding ou
 axis first (:func:`slide_out_waypoints`); for groups that start as parallel bands, a common prelude spreading
 them apart, then sliding along the bands out of the start region (:func:`spread_slide_waypoints`); spreading out
 from the swarm's centroid first (:func:`expand_waypoints`); the prelude, then each group's shortest path around
-every other group's parked places (:func:`routed_waypoints`), list-scheduled if the search finds nothing
+every other group's parked places (:func:`routed_waypoints`: around their enclosing rectangles, then around their
+hulls), list-scheduled if the search finds nothing
 (:func:`sequential_schedule`). Everything is deterministic (groups by index, i.e. by site coordinates; bounded
 search), so every UAV computes the same plan from the t = 0 exchange.
 
@@ -329,19 +330,25 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
     if plan.G < 2 or not np.isfinite(plan.spacing_m) or plan.spacing_m <= 0:
         return None            # one group: its rigid translation is rigid_plan's (DefaultPreset.rigid_translation)
     need = clearance_fraction * plan.spacing_m
-    for via in (None, slide_out_waypoints, spread_slide_waypoints, expand_waypoints, routed_waypoints):
+    stages = (("straight", None), ("slide_out", slide_out_waypoints), ("spread_slide", spread_slide_waypoints),
+              ("expand", expand_waypoints), ("routed", lambda p: routed_waypoints(p, need, rectangles=True)),
+              ("routed_hulls", lambda p: routed_waypoints(p, need)))
+    routed: list[GroupPlan] = []
+    for name, via in stages:
         if via is not None:
-            route = via(plan, need) if via is routed_waypoints else via(plan)
+            route = via(plan)
             if route is None:
                 continue
             plan.set_waypoints(*route) if isinstance(route, tuple) else plan.set_waypoints(route)
-            plan.route = via.__name__.removesuffix("_waypoints")
+            plan.route = name
         out = schedule_groups(plan, need, **schedule_kw)
-        if out is None and via is routed_waypoints:
+        if out is None and name.startswith("routed"):
             out = sequential_schedule(plan, need)
-        if out is not None:
+        if out is not None and name.startswith("routed"):
+            routed.append(out)            # both routings tried: the one that arrives first flies
+        elif out is not None:
             return out
-    return None
+    return min(routed, key=lambda p: p.T) if routed else None
 
 
 def separating_axis(plan: GroupPlan, coarse: int = 720) -> tuple[np.ndarray, np.ndarray] | None:
@@ -457,10 +464,11 @@ def slide_out_waypoints(plan: GroupPlan) -> list[np.ndarray]:
     return out
 
 
-def _c_obstacle(parked: np.ndarray, shape: np.ndarray, clearance_m: float):
-    """The centroid positions at which a group of start offsets ``shape`` (k, 2) comes within clearance_m of the parked
-    points (m, 2): contained in the convex hull of their Minkowski difference, grown by clearance_m (a shapely
-    polygon)."""
+def _c_obstacle(parked: np.ndarray, shape: np.ndarray, clearance_m: float, rectangle: bool = False):
+    """A polygon containing the centroid positions at which a group of start offsets ``shape`` (k, 2) comes within
+    clearance_m of the parked points (m, 2): those lie in the convex hull of their Minkowski difference grown by
+    clearance_m (``rectangle``: the hull's smallest enclosing rectangle, grown by clearance_m with mitred corners, which
+    contains it)."""
     import shapely
     from scipy.spatial import ConvexHull, QhullError
 
@@ -473,6 +481,10 @@ def _c_obstacle(parked: np.ndarray, shape: np.ndarray, clearance_m: float):
             return p
     a, b = hull(parked), hull(-shape)
     s = (a[:, None, :] + b[None, :, :]).reshape(-1, 2)
+    if rectangle:
+        # the hull's smallest enclosing rectangle, grown with mitred corners: it contains the grown hull, and a path
+        # around it turns at a few corners (each a stop of the rest-to-rest legs) instead of at every vertex of a hull
+        return shapely.MultiPoint(s).minimum_rotated_rectangle.buffer(clearance_m, join_style="mitre")
     return shapely.MultiPoint(s).convex_hull.buffer(clearance_m, quad_segs=2)
 
 
@@ -524,11 +536,13 @@ def _visibility_route(x0: np.ndarray, x1: np.ndarray, obstacles: list, margin_m:
     return np.array(path[::-1]).reshape(-1, 2)
 
 
-def routed_waypoints(plan: GroupPlan, clearance_m: float, gap_factor: float = 2.0) -> tuple[list[np.ndarray], np.ndarray] | None:
+def routed_waypoints(plan: GroupPlan, clearance_m: float, gap_factor: float = 2.0,
+                     rectangles: bool = False) -> tuple[list[np.ndarray], np.ndarray] | None:
     """Every group's path routed around every other group's parked places: for bands, the common spreading prelude of
     :func:`spread_slide_waypoints` first; then each group's shortest path (visibility graph) from there to its site
     that keeps it ``clearance_m`` (+ a margin) from every other group's start (after the prelude) and from every other
-    group's slot block. A place the group cannot avoid (its own site overlaps another group's start, or its start
+    group's slot block (``rectangles``: each obstacle its enclosing rectangle, larger but with few corners, so fewer
+    stops). A place the group cannot avoid (its own site overlaps another group's start, or its start
     another's site) is left to the order of the schedule.
 
     Why it completes: a group flying such a path alone meets nobody (the others wait at their starts or sit at their
@@ -544,8 +558,8 @@ def routed_waypoints(plan: GroupPlan, clearance_m: float, gap_factor: float = 2.
         obs = []
         for h in range(plan.G):
             if h != g:
-                obs.append(_c_obstacle(plan.r0[plan.group == h] + pre[h], shape, clearance_m + margin))
-                obs.append(_c_obstacle(plan.slots_m[plan.group == h], shape, clearance_m + margin))
+                obs.append(_c_obstacle(plan.r0[plan.group == h] + pre[h], shape, clearance_m + margin, rectangles))
+                obs.append(_c_obstacle(plan.slots_m[plan.group == h], shape, clearance_m + margin, rectangles))
         path = _visibility_route(cen[g] + pre[g], cen[g] + plan.d_g[g], obs, margin)
         if path is None:
             return None
