@@ -196,6 +196,7 @@ class DefaultMFGController(_DefaultBase):
         ps = p.backstop.plan_mismatch_s
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
+        self._plan_ids: tuple[np.ndarray, np.ndarray] | None = None     # (sorted ids, their plan particles): exchange_t0
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
         self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
 
@@ -204,6 +205,11 @@ class DefaultMFGController(_DefaultBase):
         p = self.preset
         S0 = np.asarray(states, dtype=float)
         self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
+        self._plan_ids = None                       # vehicle id -> its plan particle (the exchange's order): _formation_error
+        if ids is not None:
+            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+            order = np.argsort(ids, kind="stable")
+            self._plan_ids = (ids[order], order)
         self._plan_tree = None
         self._prepared, self._pending = None, None
         rigid = (rigid_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2,
@@ -251,7 +257,13 @@ class DefaultMFGController(_DefaultBase):
         hint = np.arange(states.shape[0]) if states.shape[0] == self.plan.N else None      # vehicle j <-> particle j
         if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
             return None
-        return super().sensed_cutoff_m(states)
+        reach = super().sensed_cutoff_m(states)
+        tp = self.preset.tracking
+        if reach is not None and tp.feedback and tp.relative_priority and np.isfinite(self.plan.spacing_m):
+            # _formation_error's neighbours: plan particles within the formation radius, and every vehicle is within
+            # plan_mismatch_m of the plan here (margin: the quantisation and that distance)
+            reach = (max(reach[0], tp.formation_radius_spacings * self.plan.spacing_m + 2.0 * bp.plan_mismatch_m + margin), reach[1])
+        return reach
 
     _BRUTE_MAX_PAIRS = 4096     # _beyond_plan: up to this many (state, particle) pairs by brute force, not the k-d tree
 
@@ -316,6 +328,59 @@ class DefaultMFGController(_DefaultBase):
                 return self._beyond_plan(q[first], self.preset.backstop.plan_mismatch_m, ids[first])[inv]
             return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m, ids)
         return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m)
+
+    def _formation_error(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+        """(e_bar (n, 4), count (n,)): the mean deviation from the plan, s - s_plan, over the own vehicle and the
+        sensed neighbours whose plan particle is within formation_radius_spacings x the plan spacing of the own
+        particle (each neighbour's particle by its id, from the t = 0 exchange; no communication). count - 1
+        neighbours entered it (0: e_bar is the own deviation)."""
+        n, e = self.n, self._own_err
+        cnt = np.ones(n)
+        sn = _sensed(obs)
+        if sn.states.shape[0] == 0 or sn.ids is None or self._plan_ids is None or not np.isfinite(self.plan.spacing_m):
+            return e.copy(), cnt
+        sid, spart = self._plan_ids
+        at = np.minimum(np.searchsorted(sid, sn.ids), sid.size - 1)
+        known = sid[at] == sn.ids
+        j = spart[at]
+        x = self.plan.states
+        r_max = self.preset.tracking.formation_radius_spacings * self.plan.spacing_m
+        dr = x[j, 0:2] - x[self.own_index[sn.owner], 0:2]
+        sel = np.flatnonzero(known & (dr[:, 0] ** 2 + dr[:, 1] ** 2 <= r_max * r_max))
+        if sel.size == 0:
+            return e.copy(), cnt
+        ow = sn.owner[sel]
+        cnt += np.bincount(ow, minlength=n)
+        tot = e.copy()
+        for c in range(4):
+            tot[:, c] += np.bincount(ow, weights=sn.states[sel, c] - x[j[sel], c], minlength=n)
+        return tot / cnt[:, None], cnt
+
+    def _relative_priority(self, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
+        """Priority of the relative tracking error under saturation (TrackingParams.relative_priority).
+        a_nom = a_plan + a_fb(e) splits into a_rel = a_fb(e - e_bar) (e_bar: _formation_error) and the common
+        share a_com = a_nom - a_rel; rows with formation neighbours whose a_nom exceeds acc_max, or whose a_com
+        exceeds common_acc_max, fly a_rel (capped at acc_max) + a_com capped at min(common_acc_max, what is
+        left). Every other row keeps a_nom unchanged (calm flight: bit-identical)."""
+        p, tp = self.preset, self.preset.tracking
+        a_max, c_max = p.learner.acc_max_m_s2, tp.common_acc_max_m_s2
+        e_bar, cnt = self._formation_error(obs)
+        nom = np.linalg.norm(a_nom, axis=1)
+        rows = np.flatnonzero(cnt > 1)
+        if rows.size == 0:
+            return a_nom
+        e_rel = self._own_err[rows] - e_bar[rows]
+        e_rel = np.concatenate([cap_norm(e_rel[:, 0:2], tp.e_pos_max_m), cap_norm(e_rel[:, 2:4], tp.e_vel_max_m_s)], axis=1)
+        a_rel = optimal_action(self.sigma_H.grad_psi(e_rel, self.w_H[rows]), p.cost.c3)
+        a_com = a_nom[rows] - a_rel
+        hit = (nom[rows] > a_max) | (np.linalg.norm(a_com, axis=1) > c_max)
+        if not np.any(hit):
+            return a_nom
+        rows, a_rel, a_com = rows[hit], cap_norm(a_rel[hit], a_max), a_com[hit]
+        room = np.maximum(np.minimum(c_max, a_max - np.linalg.norm(a_rel, axis=1)), 0.0)
+        out = a_nom.copy()
+        out[rows] = cap_norm(a_rel + cap_norm(a_com, room), a_max)
+        return out
 
     # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
     def _phi_G(self, own: np.ndarray, centroid: np.ndarray) -> tuple[np.ndarray, int]:
@@ -396,7 +461,10 @@ class DefaultMFGController(_DefaultBase):
         a_fb = optimal_action(grad_psi, p.cost.c3)      # eq. 8: -(1/2c3) B^T grad psi
         if not tp.feedback:
             a_fb = np.zeros_like(a_fb)
-        a = self._backstop(own, a_plan + a_fb, obs)
+        a_nom = a_plan + a_fb
+        if tp.feedback and tp.relative_priority:
+            a_nom = self._relative_priority(a_nom, obs)
+        a = self._backstop(own, a_nom, obs)
         self._pending = fpk_args or ()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
 
