@@ -356,30 +356,30 @@ class DefaultMFGController(_DefaultBase):
             tot[:, c] += np.bincount(ow, weights=sn.states[sel, c] - x[j[sel], c], minlength=n)
         return tot / cnt[:, None], cnt
 
-    def _relative_priority(self, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
-        """Priority of the relative tracking error under saturation (TrackingParams.relative_priority).
-        a_nom = a_plan + a_fb(e) splits into a_rel = a_fb(e - e_bar) (e_bar: _formation_error) and the common
-        share a_com = a_nom - a_rel; rows with formation neighbours whose a_nom exceeds acc_max, or whose a_com
-        exceeds common_acc_max, fly a_rel (capped at acc_max) + a_com capped at min(common_acc_max, what is
-        left). Every other row keeps a_nom unchanged (calm flight: bit-identical)."""
+    def _relative_priority(self, a_plan: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
+        """The tracking command of a row with formation neighbours (TrackingParams.relative_priority), in place of
+        a_nom = a_plan + a_fb(e): the error splits into the formation's common mode e_bar (_formation_error) and
+        the relative error e - e_bar; the relative feedback a_rel = a_fb(e - e_bar) comes first, capped at
+        acc_max, and the common share
+        a_com = a_plan + a_fb(e_bar) gets at most min(common_acc_max, acc_max - |a_rel|). Both a_fb as in act()
+        (the value model's eq. 8, errors leashed). Rows without formation neighbours keep a_nom."""
         p, tp = self.preset, self.preset.tracking
         a_max, c_max = p.learner.acc_max_m_s2, tp.common_acc_max_m_s2
         e_bar, cnt = self._formation_error(obs)
-        nom = np.linalg.norm(a_nom, axis=1)
         rows = np.flatnonzero(cnt > 1)
         if rows.size == 0:
             return a_nom
-        e_rel = self._own_err[rows] - e_bar[rows]
-        e_rel = np.concatenate([cap_norm(e_rel[:, 0:2], tp.e_pos_max_m), cap_norm(e_rel[:, 2:4], tp.e_vel_max_m_s)], axis=1)
-        a_rel = optimal_action(self.sigma_H.grad_psi(e_rel, self.w_H[rows]), p.cost.c3)
-        a_com = a_nom[rows] - a_rel
-        hit = (nom[rows] > a_max) | (np.linalg.norm(a_com, axis=1) > c_max)
-        if not np.any(hit):
-            return a_nom
-        rows, a_rel, a_com = rows[hit], cap_norm(a_rel[hit], a_max), a_com[hit]
+
+        def fb(err: np.ndarray) -> np.ndarray:
+            err = np.concatenate([cap_norm(err[:, 0:2], tp.e_pos_max_m), cap_norm(err[:, 2:4], tp.e_vel_max_m_s)], axis=1)
+            return optimal_action(self.sigma_H.grad_psi(err, self.w_H[rows]), p.cost.c3)
+
+        a_rel = cap_norm(fb(self._own_err[rows] - e_bar[rows]), a_max)
+        a_com = a_plan[rows] + fb(e_bar[rows])
         room = np.maximum(np.minimum(c_max, a_max - np.linalg.norm(a_rel, axis=1)), 0.0)
+        a_com = cap_norm(a_com, room)
         out = a_nom.copy()
-        out[rows] = cap_norm(a_rel + cap_norm(a_com, room), a_max)
+        out[rows] = cap_norm(a_rel + a_com, a_max)
         return out
 
     # -- Algorithm 4's coupling: phi_G(s_i, m_hat) over nearby plan particles, FPK-weighted (eq. 11)
@@ -463,7 +463,7 @@ class DefaultMFGController(_DefaultBase):
             a_fb = np.zeros_like(a_fb)
         a_nom = a_plan + a_fb
         if tp.feedback and tp.relative_priority:
-            a_nom = self._relative_priority(a_nom, obs)
+            a_nom = self._relative_priority(a_plan, a_nom, obs)
         a = self._backstop(own, a_nom, obs)
         self._pending = fpk_args or ()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
