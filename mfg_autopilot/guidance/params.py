@@ -82,6 +82,8 @@ class TrackingParams:
     relative_priority: bool = True
     common_acc_max_m_s2: float = 1.2       # the common-mode share's cap (< acc_max: the rest is kept for the relative error)
     formation_radius_spacings: float = 3.0  # sensed neighbours whose plan particle is within this x the plan spacing
+    formation_outlier_m: float = 1.0       # ... and whose deviation from the plan is within this of the own one
+                                           # (|de_r|^2 + (plan_mismatch_s |de_v|)^2, the backstop's plan metric)
 
 
 @dataclass(frozen=True)
