@@ -73,6 +73,16 @@ class TrackingParams:
     learn_hjb: bool = True          # Algorithm 3/4's online NGD update of w_H on the tracking error
     learn_fpk: bool = True          # Algorithm 4's FPK model weights the phi_G quadrature
     phi_g_radius_m: float = 5.0     # plan particles within this range enter phi_G(s_i, m)
+    # MFG, rows with formation neighbours: the feedback on the error relative to the local formation mean (what
+    # the proximity sensor sees: each sensed neighbour's s_j - s_plan,j, by its id) has priority over the plan's
+    # feedforward plus the feedback on that common mode, which gets at most common_acc_max_m_s2 (a gust beyond
+    # the model blows neighbours nearly alike: the formation may drift with it and catch up later, but each UAV
+    # fighting it alone to its own particle pushed rows into each other; docs/default_controller.md "Gusts")
+    relative_priority: bool = True
+    common_acc_max_m_s2: float = 1.2       # the common-mode share's cap (< acc_max: the rest is kept for the relative error)
+    formation_radius_spacings: float = 3.0  # sensed neighbours whose plan particle is within this x the plan spacing
+    formation_outlier_m: float = 1.0       # ... and whose deviation from the plan is within this of the own one
+                                           # (|de_r|^2 + (plan_mismatch_s |de_v|)^2, the backstop's plan metric)
 
 
 @dataclass(frozen=True)
