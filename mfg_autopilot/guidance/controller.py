@@ -140,7 +140,11 @@ class _DefaultBase:
             ps = bp.plan_mismatch_s
             dx = sn.states - plan.states[self.own_index[sn.owner]]
             d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
-            claim = d2 < min(bp.plan_mismatch_m, 0.5 * self._spacing_m()) ** 2
+            # only where the own particle is (nearly) parked: in flight, a gust blows neighbours across the own place
+            # (measured: dense --gust N = 144 seed 2, 5 pairs with the rule in flight, 0 without)
+            own_p = plan.states[self.own_index[sn.owner]]
+            parked = own_p[:, 2] ** 2 + own_p[:, 3] ** 2 < bp.own_slot_claim_max_speed_m_s ** 2
+            claim = parked & (d2 < min(bp.plan_mismatch_m, 0.5 * self._spacing_m()) ** 2)
             unplanned |= claim
             planned &= ~claim
         if self._own_err is not None:

@@ -27,7 +27,8 @@ class BackstopParams:
     # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
     plan_mismatch_m: float = 0.5
     plan_mismatch_s: float = 0.5    # velocity weight of that distance (a hovering vehicle in a moving plan stands out)
-    own_slot_claim: bool = True     # MFG: a sensed vehicle within min(plan_mismatch_m, spacing / 2) of the own particle is unplanned
+    own_slot_claim: bool = True     # MFG: a sensed vehicle within min(plan_mismatch_m, spacing / 2) of the own particle is unplanned ...
+    own_slot_claim_max_speed_m_s: float = 0.5   # ... while that particle is this slow (parked: before its start, after its arrival)
     planned_response_rigid: bool = False   # MFG: also the response to planned vehicles when the plan is rigid (conflict-free by construction)
     unplanned_trigger_m: float = 0.6   # used: min(this, 0.5 * smallest slot spacing)
     unplanned_target_m: float = 0.8    # used: min(this, 0.6 * smallest slot spacing)
