@@ -56,9 +56,10 @@ import numpy as np
 from mfg_autopilot.interface import Neighbours, Observation, StepInfo
 from mfg_autopilot.paper.model import cap_norm
 from mfg_autopilot.paper.params import Preset
+from mfg_autopilot.safety import kernels
 from mfg_autopilot.safety.params import OrcaParams
 
-__all__ = ["OrcaController", "preferred_velocity_m_s", "select_neighbours", "orca_velocities_m_s"]
+__all__ = ["OrcaController", "preferred_velocity_m_s", "select_neighbours", "orca_velocities_m_s", "warm_up"]
 
 
 def _pyrvo():
@@ -102,20 +103,33 @@ def select_neighbours(own: np.ndarray, sensed: Neighbours, neighbour_dist_m: flo
 
 
 def orca_velocities_m_s(own: np.ndarray, v_pref_m_s: np.ndarray, sensed: Neighbours, p: OrcaParams,
-                        dt_s: float) -> np.ndarray:
-    """ORCA's new velocity of each row (n, 2) (steps 2 and 3 of the module docstring), RVO2 per row
-    on the own vehicle at the origin and its selected neighbours relative to it."""
+                        dt_s: float, backend: str = "numba") -> np.ndarray:
+    """ORCA's new velocity of each row (n, 2) (steps 2 and 3 of the module docstring): RVO2's velocity computation on
+    the own vehicle at the origin and its selected neighbours relative to it. backend "numba": the compiled port of it
+    (``kernels.orca_rows``, RVO2's float32 arithmetic, all rows in one call); "rvo2": RVO2 itself through pyrvo, one
+    simulator per row (the reference; ~100x slower)."""
+    if backend not in ("numba", "rvo2"):
+        raise ValueError(f"backend must be 'numba' or 'rvo2', got {backend!r}")
     n = own.shape[0]
     v_new = cap_norm(np.asarray(v_pref_m_s, dtype=float), p.max_speed_m_s)     # no neighbour: the LP's answer
     sel = select_neighbours(own, sensed, p.neighbour_dist_m, p.max_neighbours)
     if sel.size == 0:
         return v_new
-    pyrvo = _pyrvo()
     owner = np.asarray(sensed.owner, dtype=np.int64)[sel]
-    rel = (sensed.states[sel, 0:2] - own[owner, 0:2]).tolist()
-    vel = sensed.states[sel, 2:4].tolist()
+    rel = sensed.states[sel, 0:2] - own[owner, 0:2]
+    vel = sensed.states[sel, 2:4]
     rows = np.flatnonzero(np.bincount(owner, minlength=n))
     bounds = np.searchsorted(owner, np.r_[rows, n])
+    if backend == "numba":
+        v_new[rows], _ = kernels.orca_rows(np.ascontiguousarray(rel, dtype=float), np.ascontiguousarray(vel, dtype=float),
+                                        np.ascontiguousarray(bounds, dtype=np.int64),
+                                        np.ascontiguousarray(own[rows, 2:4], dtype=float),
+                                        np.ascontiguousarray(np.asarray(v_pref_m_s, dtype=float)[rows]),
+                                        float(p.radius_m), float(p.time_horizon_s), float(dt_s), float(p.max_speed_m_s))
+        return v_new
+    pyrvo = _pyrvo()
+    rel = rel.tolist()
+    vel = vel.tolist()
     # the own agent keeps every listed neighbour (neighborDist well beyond neighbour_dist_m, as RVO2 compares float32
     # squares; maxNeighbors = the row's count); the neighbour agents search none (their own velocities are not used)
     nd, tau, r, vmax = p.neighbour_dist_m + 1.0, p.time_horizon_s, p.radius_m, p.max_speed_m_s
@@ -130,6 +144,14 @@ def orca_velocities_m_s(own: np.ndarray, v_pref_m_s: np.ndarray, sensed: Neighbo
         sim.do_step()
         v_new[i] = sim.get_agent_velocity(0).to_tuple()
     return v_new
+
+
+def warm_up() -> None:
+    """Load (or, on a cold cache, compile) the ORCA kernel through :func:`orca_velocities_m_s`, with the argument types of
+    a control step, so that the first control step does not pay for it."""
+    own = np.array([[0.0, 0.0, 1.0, 0.0], [3.0, 0.0, -1.0, 0.0]])
+    sensed = Neighbours(own[::-1].copy(), np.array([0, 1]), np.array([1, 0]))
+    orca_velocities_m_s(own, np.array([[1.0, 0.0], [-1.0, 0.0]]), sensed, OrcaParams(), 0.5)
 
 
 class OrcaController:
