@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows"]
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select"]
 
 
 @njit(cache=True)
@@ -630,3 +630,54 @@ def orca_rows(rel, vel, bounds, own_v, v_pref, radius_m, time_horizon_s, time_st
         out[k, 0] = rx
         out[k, 1] = ry
     return out, infeasible
+
+
+@njit(cache=True)
+def orca_select(own, sensed_states, owner, ids, n, nd2, max_neighbours):
+    """orca.select_neighbours (its docstring) in one pass: indices into the sensed entries (m,) of each row's neighbours,
+    rows ascending, within a row by (d2, id, entry index) ascending, at most max_neighbours per row, d2 < nd2 the float64
+    squared distance dx dx + dy dy (as numpy's d ** 2 sums). ids (m,) int64 (zeros where the ids are unknown)."""
+    m = sensed_states.shape[0]
+    cnt = np.zeros(n + 1, dtype=np.int64)
+    d2 = np.empty(m)
+    for e in range(m):
+        o = owner[e]
+        dx = sensed_states[e, 0] - own[o, 0]
+        dy = sensed_states[e, 1] - own[o, 1]
+        d2[e] = dx * dx + dy * dy
+        if d2[e] < nd2:
+            cnt[o + 1] += 1
+    for i in range(n):
+        cnt[i + 1] += cnt[i]
+    cand = np.empty(cnt[n], dtype=np.int64)              # candidates grouped by row, entry order within a row
+    fill = cnt[:n].copy()
+    for e in range(m):
+        if d2[e] < nd2:
+            o = owner[e]
+            cand[fill[o]] = e
+            fill[o] += 1
+    out = np.empty(cnt[n], dtype=np.int64)
+    n_out = 0
+    for i in range(n):
+        lo = cnt[i]
+        hi = cnt[i + 1]
+        k = 0                                            # out[n_out:n_out + k]: the row's best so far, sorted
+        for q in range(lo, hi):
+            e = cand[q]
+            if k == max_neighbours:
+                last = out[n_out + k - 1]
+                if not (d2[e] < d2[last] or (d2[e] == d2[last] and ids[e] < ids[last])):
+                    continue                             # not better than the worst kept (index order: e is later)
+                k -= 1
+            j = k
+            while j > 0:
+                prev = out[n_out + j - 1]
+                if d2[e] < d2[prev] or (d2[e] == d2[prev] and ids[e] < ids[prev]):
+                    out[n_out + j] = prev
+                    j -= 1
+                else:
+                    break
+            out[n_out + j] = e
+            k += 1
+        n_out += k
+    return out[:n_out].copy()

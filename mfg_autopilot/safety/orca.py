@@ -88,18 +88,16 @@ def select_neighbours(own: np.ndarray, sensed: Neighbours, neighbour_dist_m: flo
     m = sensed.states.shape[0]
     if m == 0:
         return np.zeros(0, dtype=np.int64)
-    owner = np.asarray(sensed.owner, dtype=np.int64)
-    d = sensed.states[:, 0:2] - own[owner, 0:2]
-    d2 = d[:, 0] ** 2 + d[:, 1] ** 2
-    cand = np.flatnonzero(d2 < neighbour_dist_m * neighbour_dist_m)
-    if cand.size == 0:
-        return cand
-    ids = np.asarray(sensed.ids, dtype=np.int64)[cand] if sensed.ids is not None else np.zeros(cand.size, dtype=np.int64)
-    order = cand[np.lexsort((cand, ids, d2[cand], owner[cand]))]
-    ow = owner[order]
-    start = np.flatnonzero(np.r_[True, ow[1:] != ow[:-1]])
-    rank = np.arange(ow.size) - np.repeat(start, np.diff(np.r_[start, ow.size]))
-    return order[rank < max_neighbours]
+    owner = np.ascontiguousarray(sensed.owner, dtype=np.int64)
+    ids = np.ascontiguousarray(sensed.ids, dtype=np.int64) if sensed.ids is not None else np.zeros(m, dtype=np.int64)
+    n = own.shape[0]
+    if owner.min() < 0 or owner.max() >= n:
+        raise ValueError(f"sensed.owner must index the {n} own rows, got values in [{owner.min()}, {owner.max()}]")
+    # one compiled pass (kernels.orca_select): the same order as np.lexsort((index, ids, d2, owner)) cut at max_neighbours
+    return kernels.orca_select(np.ascontiguousarray(own[:, 0:2], dtype=float),
+                               np.ascontiguousarray(sensed.states[:, 0:2], dtype=float), owner, ids,
+                               n, float(neighbour_dist_m * neighbour_dist_m),
+                               int(max_neighbours))
 
 
 def orca_velocities_m_s(own: np.ndarray, v_pref_m_s: np.ndarray, sensed: Neighbours, p: OrcaParams,
