@@ -184,6 +184,7 @@ class OrcaController:
         self._dest = dest.copy()
         self._w = np.zeros((self._dest.shape[0], 1))
         self.backstop_active = np.zeros(self.n, dtype=bool)
+        warm_up()                           # load the compiled ORCA kernels now, not in the first control step
 
     @property
     def n(self) -> int:
