@@ -94,8 +94,9 @@ def select_neighbours(own: np.ndarray, sensed: Neighbours, neighbour_dist_m: flo
     if owner.min() < 0 or owner.max() >= n:
         raise ValueError(f"sensed.owner must index the {n} own rows, got values in [{owner.min()}, {owner.max()}]")
     # one compiled pass (kernels.orca_select): the same order as np.lexsort((index, ids, d2, owner)) cut at max_neighbours
-    return kernels.orca_select(np.ascontiguousarray(own[:, 0:2], dtype=float),
-                               np.ascontiguousarray(sensed.states[:, 0:2], dtype=float), owner, ids,
+    # whole (., 4) state arrays (the kernel reads columns 0-1): no copy of the m sensed positions
+    return kernels.orca_select(np.array(own, dtype=float), np.ascontiguousarray(sensed.states, dtype=float),
+                               owner, ids,
                                n, float(neighbour_dist_m * neighbour_dist_m),
                                int(max_neighbours))
 
@@ -150,6 +151,10 @@ def warm_up() -> None:
     own = np.array([[0.0, 0.0, 1.0, 0.0], [3.0, 0.0, -1.0, 0.0]])
     sensed = Neighbours(own[::-1].copy(), np.array([0, 1]), np.array([1, 0]))
     orca_velocities_m_s(own, np.array([[1.0, 0.0], [-1.0, 0.0]]), sensed, OrcaParams(), 0.5)
+    states = sensed.states.copy()
+    states.setflags(write=False)            # sensed states passed through uncopied may be read-only (another signature)
+    orca_velocities_m_s(own, np.array([[1.0, 0.0], [-1.0, 0.0]]), Neighbours(states, sensed.owner, sensed.ids),
+                        OrcaParams(), 0.5)
 
 
 class OrcaController:
