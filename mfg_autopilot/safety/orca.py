@@ -36,15 +36,28 @@ point (reciprocal avoidance keeps them ``2 radius_m`` apart, so they cannot all 
 1 m arrival tolerance); per-vehicle destinations (``circle``, or a mission with one site per
 vehicle) do not have that limitation.
 
-Exactness of the bank: row i's velocity is computed by its own RVO2 simulator holding only the
-own vehicle (at the origin) and its selected neighbours (at their positions relative to it), so a
-bank of n rows gives, row by row, the same numbers as n banks of one (``tests/test_orca.py``). One
-simulator for the whole bank would not: RVO2 stores positions in float32 (1e-5 m at 100 m), a
-simulator shared by every vehicle would put each at its own observed state where its neighbours
-sense a quantised one, and RVO2 selects neighbours from everything it holds. Rows that sense no
-neighbour skip RVO2: with no half-plane its linear programme is v_pref capped at max_speed.
-A simulator is built per row and step, never reused: RVO2's ``clearAgents`` leaves dangling
-agent pointers in its k-d tree (RVOSimulator.cc, KdTree::buildAgentTree).
+Exactness of the bank: row i's velocity is RVO2's velocity for an agent at the origin holding only the
+own vehicle and its selected neighbours (at their positions relative to it), so a bank of n rows
+gives, row by row, the same numbers as n banks of one (``tests/test_orca.py``). One RVO2 simulator
+for the whole bank would not: RVO2 stores positions in float32 (1e-5 m at 100 m), a simulator shared
+by every vehicle would put each at its own observed state where its neighbours sense a quantised
+one, and RVO2 selects neighbours from everything it holds. Rows that sense no neighbour skip the
+computation: with no half-plane the linear programme's answer is v_pref capped at max_speed.
+
+Two backends compute it (``orca_velocities_m_s(..., backend=)``). "numba" (the default):
+``kernels.orca_rows``, a line-by-line port of RVO2's Agent::computeNewVelocity (the agent ORCA lines
+with the collision case, cut-off circle and legs; linearProgram1/2/3 with RVO2's RVO_EPSILON and sign
+conventions; the max-speed disc) in RVO2's own float32 arithmetic, all rows in one call; the
+neighbour selection is compiled too (``kernels.orca_select``). "rvo2": RVO2 itself through pyrvo, a
+simulator built per row and step (never reused: RVO2's ``clearAgents`` leaves dangling agent pointers
+in its k-d tree, RVOSimulator.cc, KdTree::buildAgentTree) - the reference. Agreement measured
+2026-11-25: bit-identical on every row of 200 random banks (1-12 rows, 0-30 neighbours, overlapping
+discs, infeasible programmes: the test states 1e-4 m/s) and 3,000 single-row cases; ``sim --scenario
+swap4 --n 1000 --mode orca --steps 400 --seed 1`` gives bit-identical trajectories with either
+backend (2370 collided pairs, min separation 8.2e-05 m), 45 s wall with "rvo2", 14 s with "numba".
+At N = 10,000 the controller is no longer the cost: the simulator's proximity sensing
+(``mock_vehicle.proximity.sensed_rows``, an argsort of every sensed pair) takes most of the step
+once ORCA's crowds form (docs/benchmarks.md, "ORCA baseline").
 
 Shapes: own states (n, 4) [x_m, y_m, vx_m_s, vy_m_s]; velocities and accelerations (n, 2).
 """
