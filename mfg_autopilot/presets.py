@@ -108,9 +108,10 @@ def make_controller(mode: str, preset: Preset, destination_site_m: np.ndarray) -
 
 def warm_up() -> None:
     """Load (or, on a cold cache, compile) every numba kernel a control step can reach (the paper's
-    feature and learner kernels, the backstop's), so that the first control step does not pay for it."""
+    feature and learner kernels, the backstop's, the orca mode's), so that the first control step does not pay for it."""
     from mfg_autopilot.paper import kernels
-    from mfg_autopilot.safety import backstop
+    from mfg_autopilot.safety import backstop, orca
 
     kernels.warm_up()
     backstop.warm_up()
+    orca.warm_up()

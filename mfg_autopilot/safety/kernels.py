@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates"]
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select"]
 
 
 @njit(cache=True)
@@ -408,3 +408,276 @@ def half_plane_filter(a_nom, delta_a, a_max, a_max2):
         a[i, 0], a[i, 1] = _cap_row(ax, ay, a_max)
     return a, active
 
+
+
+# --- ORCA (safety/orca.py): RVO2's Agent::computeNewVelocity for every row of a bank in one call ------------------------
+#
+# A line-by-line port of RVO2 2.x (src/Agent.cc: the agent ORCA lines, linearProgram1/2/3; src/Vector2.cc) without
+# obstacles, in RVO2's own arithmetic: float32 throughout (its Vector2 holds floats), every literal a float32, a vector
+# divided by a scalar as RVO2 does it (times 1 / s), no fused multiply-add. So a row gives RVO2's float32 result, not a
+# float64 approximation of it (tests/test_orca.py measures the agreement with pyrvo).
+# A line is a row of a (k, 4) float32 array: point x, point y, direction x, direction y.
+
+_F0 = np.float32(0.0)
+_F05 = np.float32(0.5)
+_F1 = np.float32(1.0)
+_RVO_EPSILON = np.float32(1e-5)
+
+
+@njit(cache=True)
+def _lp1(lines, line_no, radius, opt_x, opt_y, direction_opt, res_x, res_y):
+    """RVO2 linearProgram1: (ok, result x, result y); on failure the result passed in."""
+    px = lines[line_no, 0]
+    py = lines[line_no, 1]
+    dx = lines[line_no, 2]
+    dy = lines[line_no, 3]
+    dot = px * dx + py * dy
+    disc = dot * dot + radius * radius - (px * px + py * py)
+    if disc < _F0:
+        return False, res_x, res_y                 # the max-speed circle invalidates the line
+    sq = np.sqrt(disc)
+    t_left = -dot - sq
+    t_right = -dot + sq
+    for i in range(line_no):
+        denom = dx * lines[i, 3] - dy * lines[i, 2]
+        numer = lines[i, 2] * (py - lines[i, 1]) - lines[i, 3] * (px - lines[i, 0])
+        if abs(denom) <= _RVO_EPSILON:
+            if numer < _F0:                        # (almost) parallel lines
+                return False, res_x, res_y
+            continue
+        t = numer / denom
+        if denom >= _F0:
+            t_right = t if t < t_right else t_right     # std::min(t_right, t)
+        else:
+            t_left = t if t_left < t else t_left        # std::max(t_left, t)
+        if t_left > t_right:
+            return False, res_x, res_y
+    if direction_opt:
+        if opt_x * dx + opt_y * dy > _F0:
+            return True, px + t_right * dx, py + t_right * dy
+        return True, px + t_left * dx, py + t_left * dy
+    t = dx * (opt_x - px) + dy * (opt_y - py)
+    if t < t_left:
+        return True, px + t_left * dx, py + t_left * dy
+    if t > t_right:
+        return True, px + t_right * dx, py + t_right * dy
+    return True, px + t * dx, py + t * dy
+
+
+@njit(cache=True)
+def _lp2(lines, n_lines, radius, opt_x, opt_y, direction_opt):
+    """RVO2 linearProgram2: (index of the first line that failed or n_lines, result x, result y)."""
+    if direction_opt:
+        rx = opt_x * radius
+        ry = opt_y * radius
+    elif opt_x * opt_x + opt_y * opt_y > radius * radius:
+        inv = _F1 / np.sqrt(opt_x * opt_x + opt_y * opt_y)
+        rx = (opt_x * inv) * radius
+        ry = (opt_y * inv) * radius
+    else:
+        rx = opt_x
+        ry = opt_y
+    for i in range(n_lines):
+        if lines[i, 2] * (lines[i, 1] - ry) - lines[i, 3] * (lines[i, 0] - rx) > _F0:
+            ok, nx, ny = _lp1(lines, i, radius, opt_x, opt_y, direction_opt, rx, ry)
+            if not ok:
+                return i, rx, ry
+            rx = nx
+            ry = ny
+    return n_lines, rx, ry
+
+
+@njit(cache=True)
+def _lp3(lines, n_lines, begin_line, radius, rx, ry, proj):
+    """RVO2 linearProgram3 (no obstacle lines): the velocity that least violates the lines; proj is scratch (>= n_lines, 4)."""
+    distance = _F0
+    for i in range(begin_line, n_lines):
+        pix = lines[i, 0]
+        piy = lines[i, 1]
+        dix = lines[i, 2]
+        diy = lines[i, 3]
+        if dix * (piy - ry) - diy * (pix - rx) > distance:
+            n_proj = 0
+            for j in range(i):
+                pjx = lines[j, 0]
+                pjy = lines[j, 1]
+                djx = lines[j, 2]
+                djy = lines[j, 3]
+                determinant = dix * djy - diy * djx
+                if abs(determinant) <= _RVO_EPSILON:
+                    if dix * djx + diy * djy > _F0:
+                        continue                   # parallel, same direction
+                    qx = _F05 * (pix + pjx)
+                    qy = _F05 * (piy + pjy)
+                else:
+                    s = (djx * (piy - pjy) - djy * (pix - pjx)) / determinant
+                    qx = pix + s * dix
+                    qy = piy + s * diy
+                ex = djx - dix
+                ey = djy - diy
+                inv = _F1 / np.sqrt(ex * ex + ey * ey)
+                proj[n_proj, 0] = qx
+                proj[n_proj, 1] = qy
+                proj[n_proj, 2] = ex * inv
+                proj[n_proj, 3] = ey * inv
+                n_proj += 1
+            fail, nx, ny = _lp2(proj, n_proj, radius, -diy, dix, True)
+            if fail >= n_proj:                     # else: floating-point failure, RVO2 keeps the result
+                rx = nx
+                ry = ny
+            distance = dix * (piy - ry) - diy * (pix - rx)
+    return rx, ry
+
+
+@njit(cache=True)
+def orca_rows(rel, vel, bounds, own_v, v_pref, radius_m, time_horizon_s, time_step_s, max_speed_m_s):
+    """(ORCA's new velocity (r, 2), infeasible (r,): linearProgram3 ran) of r rows, each computed as RVO2's
+    Agent::computeNewVelocity (float32) for an agent at the origin with velocity own_v[k] and preferred velocity v_pref[k] (r, 2), radius, time horizon, max speed of the
+    arguments, and the neighbours bounds[k]:bounds[k + 1] of rel, vel (m, 2) (positions relative to the own agent,
+    velocities; each neighbour's radius radius_m). The neighbours are taken nearest first by their float32 squared
+    distance (RVO2's insertion order; ties in the given order)."""
+    r = own_v.shape[0]
+    out = np.empty((r, 2))
+    infeasible = np.zeros(r, dtype=np.bool_)
+    k_max = 1
+    for k in range(r):
+        k_max = max(k_max, bounds[k + 1] - bounds[k])
+    lines = np.empty((k_max, 4), dtype=np.float32)
+    proj = np.empty((k_max, 4), dtype=np.float32)
+    order = np.empty(k_max, dtype=np.int64)
+    dist = np.empty(k_max, dtype=np.float32)
+    radius = np.float32(radius_m)
+    max_speed = np.float32(max_speed_m_s)
+    inv_th = _F1 / np.float32(time_horizon_s)
+    inv_ts = _F1 / np.float32(time_step_s)
+    cr = radius + radius
+    cr_sq = cr * cr
+    for k in range(r):
+        lo = bounds[k]
+        n = bounds[k + 1] - lo
+        vx = np.float32(own_v[k, 0])
+        vy = np.float32(own_v[k, 1])
+        # RVO2's agentNeighbors_: sorted by insertion on distSq (strict <: stable)
+        for q in range(n):
+            px = np.float32(rel[lo + q, 0])
+            py = np.float32(rel[lo + q, 1])
+            d2 = px * px + py * py
+            i = q
+            while i > 0 and d2 < dist[i - 1]:
+                dist[i] = dist[i - 1]
+                order[i] = order[i - 1]
+                i -= 1
+            dist[i] = d2
+            order[i] = lo + q
+        for q in range(n):
+            e = order[q]
+            px = np.float32(rel[e, 0])
+            py = np.float32(rel[e, 1])
+            rvx = vx - np.float32(vel[e, 0])
+            rvy = vy - np.float32(vel[e, 1])
+            dist_sq = px * px + py * py
+            if dist_sq > cr_sq:
+                # no collision: w from the cut-off centre to the relative velocity
+                wx = rvx - inv_th * px
+                wy = rvy - inv_th * py
+                w_len_sq = wx * wx + wy * wy
+                dot = wx * px + wy * py
+                if dot < _F0 and dot * dot > cr_sq * w_len_sq:
+                    # project on the cut-off circle
+                    w_len = np.sqrt(w_len_sq)
+                    inv = _F1 / w_len
+                    uwx = wx * inv
+                    uwy = wy * inv
+                    dirx = uwy
+                    diry = -uwx
+                    s = cr * inv_th - w_len
+                    ux = s * uwx
+                    uy = s * uwy
+                else:
+                    # project on the legs
+                    leg = np.sqrt(dist_sq - cr_sq)
+                    inv = _F1 / dist_sq
+                    if px * wy - py * wx > _F0:           # left leg
+                        dirx = (px * leg - py * cr) * inv
+                        diry = (px * cr + py * leg) * inv
+                    else:                                 # right leg
+                        dirx = -((px * leg + py * cr) * inv)
+                        diry = -(((-px) * cr + py * leg) * inv)
+                    dp = rvx * dirx + rvy * diry
+                    ux = dp * dirx - rvx
+                    uy = dp * diry - rvy
+            else:
+                # collision: project on the cut-off circle of time time_step
+                wx = rvx - inv_ts * px
+                wy = rvy - inv_ts * py
+                w_len = np.sqrt(wx * wx + wy * wy)
+                inv = _F1 / w_len
+                uwx = wx * inv
+                uwy = wy * inv
+                dirx = uwy
+                diry = -uwx
+                s = cr * inv_ts - w_len
+                ux = s * uwx
+                uy = s * uwy
+            lines[q, 0] = vx + _F05 * ux
+            lines[q, 1] = vy + _F05 * uy
+            lines[q, 2] = dirx
+            lines[q, 3] = diry
+        fail, rx, ry = _lp2(lines, n, max_speed, np.float32(v_pref[k, 0]), np.float32(v_pref[k, 1]), False)
+        if fail < n:
+            infeasible[k] = True
+            rx, ry = _lp3(lines, n, fail, max_speed, rx, ry, proj)
+        out[k, 0] = rx
+        out[k, 1] = ry
+    return out, infeasible
+
+
+@njit(cache=True)
+def orca_select(own, sensed_states, owner, ids, n, nd2, max_neighbours):
+    """orca.select_neighbours (its docstring) in one pass: indices into the sensed entries (m,) of each row's neighbours,
+    rows ascending, within a row by (d2, id, entry index) ascending, at most max_neighbours per row, d2 < nd2 the float64
+    squared distance dx dx + dy dy (as numpy's d ** 2 sums). ids (m,) int64 (zeros where the ids are unknown)."""
+    m = sensed_states.shape[0]
+    cnt = np.zeros(n + 1, dtype=np.int64)
+    d2 = np.empty(m)
+    for e in range(m):
+        o = owner[e]
+        dx = sensed_states[e, 0] - own[o, 0]
+        dy = sensed_states[e, 1] - own[o, 1]
+        d2[e] = dx * dx + dy * dy
+        if d2[e] < nd2:
+            cnt[o + 1] += 1
+    for i in range(n):
+        cnt[i + 1] += cnt[i]
+    cand = np.empty(cnt[n], dtype=np.int64)              # candidates grouped by row, entry order within a row
+    fill = cnt[:n].copy()
+    for e in range(m):
+        if d2[e] < nd2:
+            o = owner[e]
+            cand[fill[o]] = e
+            fill[o] += 1
+    out = np.empty(cnt[n], dtype=np.int64)
+    n_out = 0
+    for i in range(n):
+        lo = cnt[i]
+        hi = cnt[i + 1]
+        k = 0                                            # out[n_out:n_out + k]: the row's best so far, sorted
+        for q in range(lo, hi):
+            e = cand[q]
+            if k == max_neighbours:
+                last = out[n_out + k - 1]
+                if not (d2[e] < d2[last] or (d2[e] == d2[last] and ids[e] < ids[last])):
+                    continue                             # not better than the worst kept (index order: e is later)
+                k -= 1
+            j = k
+            while j > 0:
+                prev = out[n_out + j - 1]
+                if d2[e] < d2[prev] or (d2[e] == d2[prev] and ids[e] < ids[prev]):
+                    out[n_out + j] = prev
+                    j -= 1
+                else:
+                    break
+            out[n_out + j] = e
+            k += 1
+        n_out += k
+    return out[:n_out].copy()
