@@ -284,3 +284,38 @@ print("new", sorted(k for k in after if after[k] != before.get(k, 0)))
     lines = out.stdout.strip().splitlines()
     assert int(lines[-2].split()[1]) > 0            # the backstop acted (the case reaches its kernels)
     assert lines[-1] == "new []"
+
+
+def test_formation_sums_equal_the_numpy_formulation():
+    """safety.kernels.formation_sums (the MFG tracking's formation mean) gives, bit for bit, the sums and counts of
+    the numpy code it replaced (selection by id, formation radius and outlier bound; np.bincount sums)."""
+    from mfg_autopilot.safety.kernels import formation_sums
+
+    rng = np.random.default_rng(12)
+    n, N, m = 7, 40, 300
+    plan = np.concatenate([rng.uniform(-5, 5, (N, 2)), rng.normal(0, 1, (N, 2))], axis=1)
+    own_index = rng.choice(N, n, replace=False).astype(np.int64)
+    e = rng.normal(0, 0.3, (n, 4))
+    own = plan[own_index] + e
+    owner = np.sort(rng.integers(0, n, m)).astype(np.int64)
+    ids = rng.integers(100, 100 + N + 5, m).astype(np.int64)           # a few ids unknown to the plan
+    plan_ids = 100 + np.arange(N, dtype=np.int64)
+    order = np.argsort(plan_ids)
+    sid, spart = plan_ids[order], order.astype(np.int64)
+    j_true = np.clip(ids - 100, 0, N - 1)
+    states = plan[j_true] + e[owner] + rng.normal(0, 0.4, (m, 4))
+    r_max, out_m, ps = 3.0, 1.0, 0.5
+    pre_r = r_max + 2 * out_m + 2 * float(np.max(np.linalg.norm(e[:, 0:2], axis=1)))
+    sums, cnt = formation_sums(owner, ids, states, own, e, sid, spart, plan, own_index, n, r_max, out_m, ps, pre_r)
+    # the numpy formulation
+    at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
+    known = sid[at] == ids
+    j = spart[at]
+    dr = plan[j, 0:2] - plan[own_index[owner], 0:2]
+    de = states - plan[j] - e[owner]
+    dev2 = de[:, 0] ** 2 + de[:, 1] ** 2 + ps * ps * (de[:, 2] ** 2 + de[:, 3] ** 2)
+    sel = np.flatnonzero(known & (dr[:, 0] ** 2 + dr[:, 1] ** 2 <= r_max * r_max) & (dev2 <= out_m * out_m))
+    ref_cnt = np.bincount(owner[sel], minlength=n)
+    ref = np.stack([np.bincount(owner[sel], weights=states[sel, c] - plan[j[sel], c], minlength=n) for c in range(4)], axis=1)
+    assert 0 < sel.size < m
+    assert np.array_equal(cnt, ref_cnt) and np.array_equal(sums, ref)

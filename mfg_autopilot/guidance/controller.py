@@ -39,6 +39,7 @@ from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
 from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
+from mfg_autopilot.safety.kernels import formation_sums
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
 
@@ -46,6 +47,13 @@ __all__ = ["DefaultMFGController", "DefaultHJBController"]
 def _sensed(obs: Observation) -> Neighbours:
     return obs.sensed if obs.sensed is not None else Neighbours.empty()
 
+
+
+def _kernel_arg(a: np.ndarray, dtype) -> np.ndarray:
+    """a as a writable C-contiguous array of dtype (a copy only if it is not one): the types the compiled kernels were
+    warmed up with (a read-only or strided array would compile a new specialisation inside a control step)."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
 
 class _DefaultBase:
     def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
@@ -357,38 +365,25 @@ class DefaultMFGController(_DefaultBase):
         if sn.states.shape[0] == 0 or sn.ids is None or self._plan_ids is None or not np.isfinite(self.plan.spacing_m):
             return e.copy(), cnt
         sid, spart = self._plan_ids
-        x = self.plan.states
         r_max = self.preset.tracking.formation_radius_spacings * self.plan.spacing_m
         # a sensed vehicle whose plan particle is near the own particle is near the own vehicle too (both track them):
         # the sensed positions pre-select, with the own deviation and twice the outlier bound as margin, before the
-        # ids are looked up (the sensor delivers many more vehicles than the formation radius holds)
+        # ids are looked up (the sensor delivers many more vehicles than the formation radius holds). A neighbour off
+        # the plan other than the own vehicle is (a failed UAV braking in Hold) is not the formation: left out beyond
+        # formation_outlier_m of the own deviation, in the plan metric (measured: with it, the dense formation around
+        # vehicle 40 failing at 20 s, seed 2, was pulled after it: 6 collided pairs instead of 0). One compiled pass
+        # (safety.kernels.formation_sums, the numpy formulation's numbers).
         out_m = self.preset.tracking.formation_outlier_m
-        own_pos = obs.own_states[sn.owner, 0:2]
-        d0 = sn.states[:, 0:2] - own_pos
         pre_r = r_max + 2.0 * out_m + 2.0 * float(np.max(np.linalg.norm(e[:, 0:2], axis=1)))
-        cand = np.flatnonzero(d0[:, 0] ** 2 + d0[:, 1] ** 2 <= pre_r * pre_r)
-        if cand.size == 0:
+        sums, got = formation_sums(_kernel_arg(sn.owner, np.int64), _kernel_arg(sn.ids, np.int64),
+                                   _kernel_arg(sn.states, np.float64), _kernel_arg(obs.own_states, np.float64),
+                                   _kernel_arg(e, np.float64), _kernel_arg(sid, np.int64), _kernel_arg(spart, np.int64),
+                                   _kernel_arg(self.plan.states, np.float64), _kernel_arg(self.own_index, np.int64), n,
+                                   float(r_max), float(out_m), float(self.preset.backstop.plan_mismatch_s), float(pre_r))
+        if not np.any(got):
             return e.copy(), cnt
-        ids, owner, st = sn.ids[cand], sn.owner[cand], sn.states[cand]
-        at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
-        known = sid[at] == ids
-        j = spart[at]
-        dr = x[j, 0:2] - x[self.own_index[owner], 0:2]
-        # a neighbour off the plan other than the own vehicle is (a failed UAV braking in Hold) is not the formation:
-        # left out beyond formation_outlier_m of the own deviation, in the plan metric (measured: with it, the dense
-        # formation around vehicle 40 failing at 20 s, seed 2, was pulled after it: 6 collided pairs instead of 0)
-        ps = self.preset.backstop.plan_mismatch_s
-        de = st - x[j] - e[owner]
-        dev2 = de[:, 0] ** 2 + de[:, 1] ** 2 + ps * ps * (de[:, 2] ** 2 + de[:, 3] ** 2)
-        sel = np.flatnonzero(known & (dr[:, 0] ** 2 + dr[:, 1] ** 2 <= r_max * r_max) & (dev2 <= out_m * out_m))
-        if sel.size == 0:
-            return e.copy(), cnt
-        ow = owner[sel]
-        cnt += np.bincount(ow, minlength=n)
-        tot = e.copy()
-        for c in range(4):
-            tot[:, c] += np.bincount(ow, weights=st[sel, c] - x[j[sel], c], minlength=n)
-        return tot / cnt[:, None], cnt
+        cnt += got
+        return (e + sums) / cnt[:, None], cnt
 
     def _relative_priority(self, a_plan: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
         """The tracking command of a row with formation neighbours (TrackingParams.relative_priority), in place of

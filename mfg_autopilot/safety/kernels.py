@@ -24,7 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select"]
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
+           "formation_sums"]
 
 
 @njit(cache=True)
@@ -681,3 +682,46 @@ def orca_select(own, sensed_states, owner, ids, n, nd2, max_neighbours):
             k += 1
         n_out += k
     return out[:n_out].copy()
+
+
+@njit(cache=True)
+def formation_sums(owner, ids, states, own_states, own_err, sid, spart, plan_states, own_index, n, r_max, out_m, ps, pre_r):
+    """The sums behind the MFG tracking's formation mean (``guidance.controller._formation_error``), in one pass over
+    the m sensed entries (owner (m,), ids (m,), states (m, 4)): an entry counts for its owner row if its id is a plan
+    particle j (sid sorted, spart the particle of each), j's plan position is within r_max of the owner's own particle
+    (own_index), and its deviation from j differs from the owner's own deviation own_err by at most out_m in the plan
+    metric |dr|^2 + (ps |dv|)^2; entries farther than pre_r from the owner's observed position (own_states) are
+    skipped first (they cannot count: docstring of the caller). Returns (sums (n, 4) of states - plan_states[j] per
+    row, from 0.0 in entry order as np.bincount gives them; counts (n,) of entries that counted)."""
+    sums = np.zeros((n, 4))
+    cnt = np.zeros(n, dtype=np.int64)
+    m = owner.shape[0]
+    n_sid = sid.shape[0]
+    r2, o2, p2 = r_max * r_max, out_m * out_m, pre_r * pre_r
+    for k in range(m):
+        i = owner[k]
+        dx0 = states[k, 0] - own_states[i, 0]
+        dy0 = states[k, 1] - own_states[i, 1]
+        if not (dx0 * dx0 + dy0 * dy0 <= p2):
+            continue
+        at = np.searchsorted(sid, ids[k])
+        if at >= n_sid:
+            at = n_sid - 1
+        if sid[at] != ids[k]:
+            continue
+        j = spart[at]
+        q = own_index[i]
+        drx = plan_states[j, 0] - plan_states[q, 0]
+        dry = plan_states[j, 1] - plan_states[q, 1]
+        if not (drx * drx + dry * dry <= r2):
+            continue
+        d0 = states[k, 0] - plan_states[j, 0] - own_err[i, 0]
+        d1 = states[k, 1] - plan_states[j, 1] - own_err[i, 1]
+        d2 = states[k, 2] - plan_states[j, 2] - own_err[i, 2]
+        d3 = states[k, 3] - plan_states[j, 3] - own_err[i, 3]
+        if not (d0 ** 2 + d1 ** 2 + ps * ps * (d2 ** 2 + d3 ** 2) <= o2):
+            continue
+        cnt[i] += 1
+        for c in range(4):
+            sums[i, c] += states[k, c] - plan_states[j, c]
+    return sums, cnt
