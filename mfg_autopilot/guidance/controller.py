@@ -145,16 +145,18 @@ class _DefaultBase:
             # a sensed vehicle on the own particle's place is not on the plan whatever particle it is near: the own
             # vehicle is that particle (measured: a UAV failed in Hold on a group mate's slot was taken as that
             # slot's particle, and the mate settled 0.06-0.2 m from it; merge N = 300, seed 4)
-            ps = bp.plan_mismatch_s
-            dx = sn.states - plan.states[self.own_index[sn.owner]]
-            d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
             # only where the own particle is (nearly) parked: in flight, a gust blows neighbours across the own place
             # (measured: dense --gust N = 144 seed 2, 5 pairs with the rule in flight, 0 without)
-            own_p = plan.states[self.own_index[sn.owner]]
+            own_p = plan.states[self.own_index]
             parked = own_p[:, 2] ** 2 + own_p[:, 3] ** 2 < bp.own_slot_claim_max_speed_m_s ** 2
-            claim = parked & (d2 < min(bp.plan_mismatch_m, 0.5 * self._spacing_m()) ** 2)
-            unplanned |= claim
-            planned &= ~claim
+            idx = np.flatnonzero(parked[sn.owner]) if np.any(parked) else np.zeros(0, dtype=np.int64)
+            if idx.size:
+                ps = bp.plan_mismatch_s
+                dx = sn.states[idx] - own_p[sn.owner[idx]]
+                d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
+                claim = idx[d2 < min(bp.plan_mismatch_m, 0.5 * self._spacing_m()) ** 2]
+                unplanned[claim] = True
+                planned[claim] = False
         if self._own_err is not None:
             # the planned vehicles' response assumes both fly the plan to within centimetres; a UAV blown
             # further off its own particle, or a neighbour off the plan by the common mode, is left to the
