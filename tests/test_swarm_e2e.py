@@ -190,17 +190,15 @@ def test_launcher_killed_hard_takes_its_children_and_leaves_a_partial_folder(tmp
     assert read_vehicle_tlog(out / "vehicles" / "vehicle0.tlog", 1).state.shape[0] > 0
 
 
-@pytest.mark.slow
-def test_swap4_process_swarm_of_36_flies_the_rigid_half_turn_without_collision(tmp_path):
-    """Issue 18: four streams through the middle as real processes (mock vehicles, controllers, MAVLink,
-    Zenoh, lockstep): 0 collided pairs, everyone in its slot, N - 1 states received per UAV, and the
-    flight is the simulator's."""
+def _fly_collision_free_as_the_simulator(tmp_path, args: list[str], n: int) -> tuple[dict, dict]:
+    """Fly args as real processes and in the simulator: the process run has 0 collided pairs, everyone in its slot,
+    N - 1 states received per UAV, half the start spacing kept, and the same flight as the simulator. Returns both
+    metrics."""
     before = {p.pid for p in psutil.Process().children(recursive=True)}
-    args = ["--scenario", "swap4", "--n", "36", "--seed", "3", "--steps", "200"]
     proc = _run(tmp_path / "run", *args, timeout=420)
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0 and m["comm_states_per_uav"] == 35.0
+    assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0 and m["comm_states_per_uav"] == float(n - 1)
     assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]
     sim = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", *args, "--out", str(tmp_path / "sim"), "--no-progress"],
                          capture_output=True, text=True, timeout=300)
@@ -209,6 +207,15 @@ def test_swap4_process_swarm_of_36_flies_the_rigid_half_turn_without_collision(t
     b = np.load(tmp_path / "sim" / "trajectories.npz")["pos_m"]
     assert a.shape == b.shape and np.max(np.abs(a - b)) < POS_TOL_M
     _assert_no_children_left(before)
+    return m, json.loads((tmp_path / "sim" / "metrics.json").read_text())
+
+
+@pytest.mark.slow
+def test_swap4_process_swarm_of_36_flies_the_rigid_half_turn_without_collision(tmp_path):
+    """Issue 18: four streams through the middle as real processes (mock vehicles, controllers, MAVLink,
+    Zenoh, lockstep): 0 collided pairs, everyone in its slot, N - 1 states received per UAV, and the
+    flight is the simulator's."""
+    _fly_collision_free_as_the_simulator(tmp_path, ["--scenario", "swap4", "--n", "36", "--seed", "3", "--steps", "200"], 36)
 
 
 @pytest.mark.slow
@@ -216,20 +223,7 @@ def test_random_process_swarm_flies_the_scheduled_group_plan_without_collision(t
     """Issue 18: a `random` layout whose bands must first spread apart and slide out (route spread_slide, groups
     started on a schedule), flown by real processes: every controller computes the same plan from the t = 0
     exchange, 0 collided pairs, everyone in its slot, and the flight is the simulator's."""
-    before = {p.pid for p in psutil.Process().children(recursive=True)}
-    args = ["--scenario", "random", "--n", "24", "--seed", "1", "--steps", "180"]
-    proc = _run(tmp_path / "run", *args, timeout=420)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    m = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0 and m["comm_states_per_uav"] == 23.0
+    m, ms = _fly_collision_free_as_the_simulator(
+        tmp_path, ["--scenario", "random", "--n", "24", "--seed", "1", "--steps", "180"], 24)
     assert m["plans_agree"] is True and m["plan"]["route"] == "spread_slide"
-    assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]
-    sim = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", *args, "--out", str(tmp_path / "sim"), "--no-progress"],
-                         capture_output=True, text=True, timeout=300)
-    assert sim.returncode == 0, sim.stderr
-    ms = json.loads((tmp_path / "sim" / "metrics.json").read_text())
     assert ms["plan"]["plan"] == "groups" and ms["plan"]["route"] == "spread_slide"
-    a = np.load(tmp_path / "run" / "trajectories.npz")["pos_m"]
-    b = np.load(tmp_path / "sim" / "trajectories.npz")["pos_m"]
-    assert a.shape == b.shape and np.max(np.abs(a - b)) < POS_TOL_M
-    _assert_no_children_left(before)

@@ -48,12 +48,12 @@ def _sensed(obs: Observation) -> Neighbours:
     return obs.sensed if obs.sensed is not None else Neighbours.empty()
 
 
-
 def _kernel_arg(a: np.ndarray, dtype) -> np.ndarray:
     """a as a writable C-contiguous array of dtype (a copy only if it is not one): the types the compiled kernels were
     warmed up with (a read-only or strided array would compile a new specialisation inside a control step)."""
     a = np.ascontiguousarray(a, dtype=dtype)
     return a if a.flags.writeable else a.copy()
+
 
 class _DefaultBase:
     def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:

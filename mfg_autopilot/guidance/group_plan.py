@@ -339,7 +339,8 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
             route = via(plan)
             if route is None:
                 continue
-            plan.set_waypoints(*route) if isinstance(route, tuple) else plan.set_waypoints(route)
+            via_m, prelude = route if isinstance(route, tuple) else (route, None)
+            plan.set_waypoints(via_m, prelude)
             plan.route = name
         out = schedule_groups(plan, need, **schedule_kw)
         if out is None and name.startswith("routed"):
@@ -356,6 +357,13 @@ def separating_axis(plan: GroupPlan, coarse: int = 720) -> tuple[np.ndarray, np.
     that start as parallel bands), the groups sorted along it; None if there is none. The direction maximises the
     smallest gap between consecutive intervals: a scan of ``coarse`` directions over the groups' convex hull vertices,
     refined by a bounded scalar search around the best (the gap may be centimetres: bands cut from random points)."""
+    memo = plan.__dict__.setdefault("_separating_axis", {})     # spread_slide and both routings ask for it
+    if coarse not in memo:
+        memo[coarse] = _separating_axis(plan, coarse)
+    return memo[coarse]
+
+
+def _separating_axis(plan: GroupPlan, coarse: int) -> tuple[np.ndarray, np.ndarray] | None:
     from scipy.optimize import minimize_scalar
     from scipy.spatial import ConvexHull, QhullError
 
