@@ -460,6 +460,9 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
+            v0 = getattr(sc, "initial_vel_m_s", None)
+            if cfg.mission is None and v0 is not None:       # the scenario's start velocity (dense: at rest), else the wind's
+                argv.append(f"--initial-vel-m-s={float(v0[i, 0])!r},{float(v0[i, 1])!r}")
             if cfg.mission is not None:
                 # a real field: the world's frame is the mission's datum; each vehicle boots on the ground at its
                 # launch point, its EKF origin there (so two vehicles' LOCAL_NED are not comparable)

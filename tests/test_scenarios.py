@@ -56,6 +56,9 @@ def test_family_shapes():
     start_r = np.linalg.norm(me.initial_pos_m, axis=1)
     site_r = np.linalg.norm(me.destination_m, axis=1)
     assert start_r.min() >= 70.0 and site_r.max() < 0.5 * start_r.min()      # every source converges on the centre area
+    de = make_scenario("dense", 100)                                      # packed on a pad: at rest, not airborne
+    assert de.initial_vel_m_s is not None and np.all(de.initial_vel_m_s == 0.0) and de.initial_vel_m_s.shape == (100, 2)
+    assert make_scenario("paper", 100).initial_vel_m_s is None             # the paper's start: each UAV at its wind velocity
     ra = make_scenario("random", 200, seed=4)
     assert len({tuple(s) for s in ra.destination_m.tolist()}) < len(set(ra.group.tolist()))     # groups share sites
     assert ra.min_start_spacing_m >= 1.5

@@ -227,3 +227,14 @@ def test_random_process_swarm_flies_the_scheduled_group_plan_without_collision(t
         tmp_path, ["--scenario", "random", "--n", "24", "--seed", "1", "--steps", "180"], 24)
     assert m["plans_agree"] is True and m["plan"]["route"] == "spread_slide"
     assert ms["plan"]["plan"] == "groups" and ms["plan"]["route"] == "spread_slide"
+
+
+@pytest.mark.slow
+def test_dense_process_swarm_starts_at_rest_and_keeps_half_its_spacing(tmp_path):
+    """Issue 18: the 0.5 m `dense` pad as real processes: every mock vehicle starts at rest (the launcher passes the
+    scenario's start velocity; the paper's airborne start would draw each from the wind), then the flight is the
+    simulator's, collision-free, everyone in its slot, at least half the 0.5 m spacing apart."""
+    m, _ = _fly_collision_free_as_the_simulator(tmp_path, ["--scenario", "dense", "--n", "16", "--seed", "2", "--steps", "120"], 16)
+    v0 = np.load(tmp_path / "run" / "trajectories.npz")["vel_m_s"][0]
+    assert np.all(v0 == 0.0), v0
+    assert m["start_spacing_m"] == pytest.approx(0.5)
