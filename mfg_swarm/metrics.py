@@ -12,7 +12,8 @@ from scipy.spatial import cKDTree
 
 from .spatial import GRID_MIN_N, pairs_within_reach
 
-__all__ = ["COLLISION_DISTANCE_M", "ARRIVAL_TOLERANCE_M", "segment_min_distance", "collisions", "arrivals", "motion_energy"]
+__all__ = ["COLLISION_DISTANCE_M", "ARRIVAL_TOLERANCE_M", "segment_min_distance", "collisions", "arrivals", "motion_energy",
+           "separation_guarantee"]
 
 COLLISION_DISTANCE_M = 0.1
 ARRIVAL_TOLERANCE_M = 1.0
@@ -75,6 +76,34 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
             pairs_hit.update(map(tuple, np.sort(cand[hit], axis=1).tolist()))
     return {"collision_pairs": len(pairs_hit), "collision_pair_steps": pair_steps,
             "min_pair_distance_m": dmin, "closest_pair": closest, "pairs": sorted(pairs_hit)}
+
+
+def separation_guarantee(pos_m: np.ndarray, plan_pos_m: np.ndarray, tracking: np.ndarray | None = None) -> dict:
+    """The plan-tracking guarantee of docs/default_controller.md ("The statement"), evaluated on one flight.
+
+    pos_m, plan_pos_m: (T+1, N, 2) each UAV's position and its own plan particle's at the control instants;
+    tracking: (T+1, N) bool, the (step, UAV) samples that fly the plan (default: all; a UAV that failed and went to
+    Hold is not tracking from its failure on, and its pairs are the backstop's). Among the UAVs tracking throughout,
+    along each step's straight segments (as ``collisions``): if every UAV stays within e of its particle, the
+    triangle inequality gives |r_i - r_j| >= |p_i - p_j| - 2 e at every point of every segment (the interpolated
+    error is at most the larger of its two ends), so
+
+        min_separation >= plan_min_separation - 2 e_max.
+
+    Returns {"plan_min_separation_m": the particles' smallest distance along the segments,
+    "tracking_error_max_m": e_max, "separation_bound_m": plan_min_separation - 2 e_max (negative: no guarantee),
+    "min_separation_m": the UAVs' smallest distance, the same set, "uavs": how many tracked throughout}."""
+    pos = np.asarray(pos_m, dtype=float)
+    plan = np.asarray(plan_pos_m, dtype=float)
+    if pos.shape != plan.shape or pos.ndim != 3 or pos.shape[2] != 2:
+        raise ValueError(f"pos_m and plan_pos_m must both be (T+1, N, 2), got {pos.shape} and {plan.shape}")
+    keep = np.ones(pos.shape[1], dtype=bool) if tracking is None else np.all(np.asarray(tracking, dtype=bool), axis=0)
+    pos, plan = pos[:, keep], plan[:, keep]
+    e_max = float(np.max(np.linalg.norm(pos - plan, axis=2))) if pos.size else 0.0
+    plan_min = collisions(plan)["min_pair_distance_m"]
+    return {"plan_min_separation_m": float(plan_min), "tracking_error_max_m": e_max,
+            "separation_bound_m": float(plan_min - 2.0 * e_max), "min_separation_m": float(collisions(pos)["min_pair_distance_m"]),
+            "uavs": int(keep.sum())}
 
 
 def arrivals(pos_m: np.ndarray, dest_m: np.ndarray, dt_s: float, tol_m: float = ARRIVAL_TOLERANCE_M) -> tuple[np.ndarray, np.ndarray]:

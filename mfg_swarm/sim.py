@@ -40,7 +40,7 @@ from mfg_autopilot.presets import MODES, make_controller
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
-from .metrics import arrivals
+from .metrics import arrivals, separation_guarantee
 from .results import Trajectories, compute_metrics
 from .scenarios import Scenario
 from .spatial import count_within, pairs_within_reach, pos_sums_by_tree, sorted_unique
@@ -210,6 +210,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
 
     ctrl = make_controller(cfg.mode, preset, sc.destination_m)
     ids = np.arange(n)
+    cert = {}
     if getattr(ctrl, "uses_t0_exchange", not cfg.gossips):
         ctrl.exchange_t0(f32(plant.states), ids, ids, sc.destination_m)       # the t = 0 exchange
         cert = getattr(ctrl, "plan_certificate", None) or {}
@@ -229,6 +230,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     w_ref = np.empty((T + 1, ctrl.weights()["w_H"].shape[1]))
     bar = _Progress(T, sys.stderr.isatty() if progress is None else progress)
 
+    # MFG: each UAV's own plan particle at every control instant, for the guarantee's per-flight check (metrics
+    # "guarantee"); the plan has been caught up to step k when step k begins (it advances at the end of each step)
+    plan_pos = np.full((T + 1, n, 2), np.nan) if getattr(ctrl, "plan_positions_m", None) and cert else None
     hold_pos = None
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     backstop_active = np.zeros((T, n), dtype=bool)
@@ -255,6 +259,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             q = np.zeros_like(obs)
             q[seen] = quantise_sensed_states(obs[seen])
             sensed = Neighbours(q[other], owner, other)
+        if plan_pos is not None:
+            ctrl.prepare(k)
+            plan_pos[k] = ctrl.plan_positions_m()
         info = ctrl.step(Observation(k, k * dt, obs, heard, sensed, heard_summary))
         acc_cmd = f32(info.acc_m_s2)
         if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:
@@ -276,6 +283,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         bar.update(k + 1)
     pos[T], vel[T] = plant.states[:, 0:2], plant.states[:, 2:4]
     w_ref[T] = ctrl.weights()["w_H"][0]
+    if plan_pos is not None:
+        ctrl.prepare(T)
+        plan_pos[T] = ctrl.plan_positions_m()
 
     traj = Trajectories(dt_s=dt, pos_m=pos, vel_m_s=vel, acc_m_s2=acc_log, dest_m=np.asarray(ctrl.destinations_m, dtype=float).copy(),
                         comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref,
@@ -296,6 +306,13 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         metrics.update(fail_vehicle=K, fail_at_s=cfg.fail_at_s,
                        failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"] if K in p),
                        arrived_fraction_others=float(arrived[others].mean()) if n > 1 else None)
+    if plan_pos is not None:
+        # the certified plan's guarantee on this flight: UAVs within e_max of their particles keep the particles'
+        # distance - 2 e_max (a UAV that failed leaves the tracking set at its failure: its pairs are the backstop's)
+        tracking = np.ones((T + 1, n), dtype=bool)
+        if cfg.fail_vehicle is not None:
+            tracking[int(np.ceil(cfg.fail_at_s / dt - 1e-9)):, cfg.fail_vehicle] = False
+        metrics["guarantee"] = {"certified": cert.get("clearance_m") is not None, **separation_guarantee(pos, plan_pos, tracking)}
     if cfg.gust is not None:
         metrics["gust"] = {k: getattr(cfg.gust, k) for k in ("start_s", "duration_s", "acc_m_s2", "spread", "jitter_deg")}
     return traj, metrics

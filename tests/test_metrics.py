@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mfg_autopilot.paper.params import radio_range_m
-from mfg_swarm.metrics import arrivals, collisions, motion_energy, segment_min_distance
+from mfg_swarm.metrics import arrivals, collisions, motion_energy, segment_min_distance, separation_guarantee
 
 
 def test_pair_passing_through_each_other_between_samples_is_a_collision():
@@ -102,3 +102,42 @@ def test_min_distance_exact_without_collisions(n_side):
     ref = _brute_collisions(pos)
     assert ref[0] == 0 and ref[2] > 0.1
     assert (col["collision_pairs"], col["collision_pair_steps"], col["min_pair_distance_m"]) == ref[:3]
+
+
+def test_separation_guarantee_bounds_the_flown_separation_by_the_plan_and_the_tracking_error():
+    # given plan particles on crossing straight lines and UAVs off their particles by up to 0.2 m, one UAV far off
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 1.0, 21)[:, None, None]
+    start = rng.uniform(-10, 10, size=(1, 12, 2))
+    plan = start + t * rng.uniform(-20, 20, size=(1, 12, 2))
+    err = rng.normal(size=plan.shape)
+    err *= (0.2 * rng.uniform(size=plan.shape[:2]) / np.linalg.norm(err, axis=2))[:, :, None]
+    pos = plan + err
+    pos[10:, 3] += 5.0                                   # UAV 3 leaves its particle at step 10 (a failure)
+    tracking = np.ones(plan.shape[:2], dtype=bool)
+    tracking[10:, 3] = False
+    g = separation_guarantee(pos, plan, tracking)
+    keep = np.arange(12) != 3
+    # then the figures are those of the tracking UAVs, and the bound holds
+    assert g["uavs"] == 11
+    assert g["tracking_error_max_m"] == pytest.approx(np.max(np.linalg.norm(err[:, keep], axis=2)))
+    assert g["plan_min_separation_m"] == pytest.approx(collisions(plan[:, keep])["min_pair_distance_m"])
+    assert g["min_separation_m"] == pytest.approx(collisions(pos[:, keep])["min_pair_distance_m"])
+    assert g["separation_bound_m"] == pytest.approx(g["plan_min_separation_m"] - 2 * g["tracking_error_max_m"])
+    assert g["min_separation_m"] >= g["separation_bound_m"]
+    # and with the failed UAV counted as tracking, its 5 m error makes the bound say nothing
+    assert separation_guarantee(pos, plan)["tracking_error_max_m"] > 5.0
+    with pytest.raises(ValueError, match="both be"):
+        separation_guarantee(pos, plan[:, :5])
+
+
+@pytest.mark.parametrize("seed", [0, 3, 11])
+def test_property_the_guarantee_bound_never_exceeds_the_flown_separation(seed):
+    # random plans and tracking errors, seeded: the triangle inequality along step segments
+    rng = np.random.default_rng(seed)
+    n, steps = 20, 30
+    vel = rng.normal(scale=2.0, size=(n, 2))
+    plan = rng.uniform(-15, 15, size=(1, n, 2)) + np.arange(steps + 1)[:, None, None] * 0.5 * vel[None]
+    pos = plan + rng.normal(scale=0.3, size=plan.shape)
+    g = separation_guarantee(pos, plan)
+    assert g["min_separation_m"] >= g["separation_bound_m"] - 1e-12

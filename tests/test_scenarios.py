@@ -97,6 +97,22 @@ def test_a_new_family_flies_in_the_simulator_and_reports_the_safety_metrics(tmp_
     col = collisions(pos)
     assert tuple(m["closest_pair"]) == col["closest_pair"] and i < j and 0 <= k < pos.shape[0]
     assert m["safety_interventions"] == m["backstop_activations"] >= 0
+    # the certified plan's guarantee, checked on this flight: the plan keeps its clearance, the UAVs its bound
+    g = m["guarantee"]
+    assert g["certified"] is True and g["uavs"] == 24 and g["min_separation_m"] == pytest.approx(m["min_separation_m"])
+    # (along straight step segments: a turning pair's chord is shorter than its distance, by < 0.1 % here)
+    assert g["plan_min_separation_m"] >= m["plan"]["clearance_m"] * (1 - 1e-3)
+    assert 0.0 < g["tracking_error_max_m"] < 1.0
+    assert g["min_separation_m"] >= g["separation_bound_m"] == pytest.approx(g["plan_min_separation_m"] - 2 * g["tracking_error_max_m"])
+
+
+def test_the_guarantee_is_reported_for_plans_only(tmp_path):
+    # HJB_d has no plan: no "guarantee" in its metrics
+    out = tmp_path / "hjb"
+    proc = subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", "--scenario", "paper", "--n", "9", "--mode", "hjb", "--range-m", "100",
+                           "--steps", "4", "--out", str(out), "--no-progress"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "guarantee" not in json.loads((out / "metrics.json").read_text())
 
 
 def test_closest_pair_is_found_between_samples():

@@ -252,6 +252,13 @@ class DefaultMFGController(_DefaultBase):
     def _spacing_m(self) -> float:
         return self.plan.spacing_m
 
+    def plan_positions_m(self) -> np.ndarray | None:
+        """Each row's own plan particle's position now (n, 2) (a copy; None before the t = 0 exchange): what the
+        tracking holds the UAV to, for the per-flight check of the guarantee (mfg_swarm.metrics.separation_guarantee)."""
+        if self.plan is None:
+            return None
+        return self.plan.states[self.own_index, 0:2].copy()
+
     @property
     def plan_certificate(self) -> dict | None:
         """What the t = 0 plan guarantees: {"plan": kind, "clearance_m": d, "duration_s": T} when it is conflict-free by

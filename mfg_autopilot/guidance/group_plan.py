@@ -84,7 +84,7 @@ class GroupPlan(TimedPlan):
         self.tau = float(wind_tau_s)
         self.k = 0
         self.rep_active = np.zeros(self.N, dtype=bool)
-        self._cache: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._cache: dict[int, np.ndarray] | None = None     # TimedPlan._states_at_step
 
     def set_waypoints(self, via_m: list[np.ndarray], prelude_m: np.ndarray | None = None) -> None:
         """Each group's path: straight legs through its waypoints (offsets of its centroid from the start, (k, 2) each;

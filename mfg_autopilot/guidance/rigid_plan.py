@@ -84,22 +84,34 @@ class TimedPlan:
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
+    def _states_at_step(self, k: int) -> np.ndarray:
+        """Plan states at step k (N, 4), computed once: the step before's k + 1 is this step's k."""
+        cache = self._cache if self._cache is not None else {}
+        if k not in cache:
+            cache = {j: v for j, v in cache.items() if j >= k - 1}
+            cache[k] = self.at(k * self.dt_s)[0]
+            self._cache = cache
+        return cache[k]
+
     def _now(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._cache is None or self._cache[0] != self.k:
-            s, a = self.at(self.k * self.dt_s)
-            self._cache = (self.k, s, a)
-        return self._cache[1], self._cache[2]
+        """(states at step k, the kinematic acceleration held over [t_k, t_k+1]: (v(t_k+1) - v(t_k)) / dt)."""
+        s, s1 = self._states_at_step(self.k), self._states_at_step(self.k + 1)
+        return s, (s1[:, 2:4] - s[:, 2:4]) / self.dt_s
 
     @property
     def states(self) -> np.ndarray:
         """Plan states at step k, (N, 4)."""
-        return self._now()[0]
+        return self._states_at_step(self.k)
 
     def action(self) -> np.ndarray:
-        """The plan's command at step k (N, 2): the kinematic acceleration plus the model's wind drag
-        c0 (v - v_o), so that eq. 9 without noise follows the plan."""
-        s, a = self._now()
-        return a + self.cost.c0_per_s * (s[:, 2:4] - self.cost.v_o[None, :])
+        """The plan's command at step k (N, 2), held over [t_k, t_k+1] (the autopilot's zero-order hold): the mean
+        kinematic acceleration over that step (the instantaneous one at t_k would miss every phase change inside a
+        step: at t = 0 a trapezoid's acceleration is 0, its velocity at t_1 a_max dt) plus the model's wind drag
+        c0 (v - v_o) at the step's mean velocity, so that eq. 9 without noise follows the plan's samples to second
+        order."""
+        s, s1 = self._states_at_step(self.k), self._states_at_step(self.k + 1)
+        v, v1 = s[:, 2:4], s1[:, 2:4]
+        return (v1 - v) / self.dt_s + self.cost.c0_per_s * (0.5 * (v + v1) - self.cost.v_o[None, :])
 
     def advance(self) -> None:
         self.k += 1
@@ -140,7 +152,7 @@ class RigidPlan(TimedPlan):
             self.T = _duration(self.dist, v_max_m_s, a_kin_max_m_s2)
         self.k = 0
         self.rep_active = np.zeros(self.N, dtype=bool)
-        self._cache: tuple[int, np.ndarray, np.ndarray] | None = None
+        self._cache: dict[int, np.ndarray] | None = None     # TimedPlan._states_at_step
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Every particle's state (N, 4) and kinematic acceleration (N, 2) at time t."""
