@@ -36,6 +36,7 @@ from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_new_lines, read_vehicle_tlog, realtime_grid
 from .results import METRIC_KEYS, Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
+from .metrics import separation_guarantee
 from .scenarios import Scenario
 from .sim import plant_params_for
 
@@ -630,6 +631,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     mfe = np.zeros((T_eff, n), dtype=np.int64)
     reg = np.zeros((T_eff, n), dtype=bool)
     backstop = np.zeros((T_eff, n), dtype=bool)
+    plan_pos = np.full((T_eff + 1, n, 2), np.nan)       # each UAV's own plan particle (MFG default), from its log
     dest = np.array(json.loads((out / "mission.json").read_text())["sites_m"], dtype=float).reshape(n, 2)
     for i, lg in enumerate(logs):
         for ev in lg.events:
@@ -643,6 +645,8 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
                 mfe[k, i] = rec.get("mf_evals", 0)
                 reg[k, i] = rec.get("reg_active", False)
                 backstop[k, i] = rec.get("backstop_active", False)
+            if k <= T_eff and rec.get("plan_pos_m") is not None:
+                plan_pos[k, i] = rec["plan_pos_m"]
         if lg.end is not None and lg.end.get("destination_m") is not None:
             dest[i] = lg.end["destination_m"]
     w_ref = np.array([rec["w_H"] for rec in logs[0].steps[: T_eff + 1]], dtype=float) if logs and logs[0].steps else None
@@ -661,4 +665,11 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
         metrics["plan"] = plans[0]                   # every controller computes the same plan from the same exchange
         metrics["plans_agree"] = all(p == plans[0] for p in plans)
     metrics.update(start_spacing_m=cfg.scenario.min_start_spacing_m, slot_spacing_m=cfg.scenario.slot_spacing_m)
+    logged = ~np.isnan(plan_pos[:, :, 0]).any(axis=1)
+    upto = int(np.argmin(logged)) if not logged.all() else T_eff + 1      # instants with every particle logged
+    if plans and upto >= 2:
+        # the plan's guarantee on this flight, as `sim` reports it (a step record is written for t_0 .. t_T-1: the
+        # last instant has no particle logged)
+        metrics["guarantee"] = {"certified": plans[0].get("clearance_m") is not None,
+                                **separation_guarantee(traj.pos_m[:upto], plan_pos[:upto])}
     return traj, metrics

@@ -207,7 +207,15 @@ def _fly_collision_free_as_the_simulator(tmp_path, args: list[str], n: int) -> t
     b = np.load(tmp_path / "sim" / "trajectories.npz")["pos_m"]
     assert a.shape == b.shape and np.max(np.abs(a - b)) < POS_TOL_M
     _assert_no_children_left(before)
-    return m, json.loads((tmp_path / "sim" / "metrics.json").read_text())
+    ms = json.loads((tmp_path / "sim" / "metrics.json").read_text())
+    # the plan's guarantee, from the particles every controller logged: the simulator's figures (its last instant,
+    # which no step record covers, aside), and the bound holds
+    g, gs = m["guarantee"], ms["guarantee"]
+    assert g["certified"] is gs["certified"] is True and g["uavs"] == n
+    assert g["min_separation_m"] >= g["separation_bound_m"]
+    assert abs(g["plan_min_separation_m"] - gs["plan_min_separation_m"]) < 1e-3
+    assert g["tracking_error_max_m"] <= gs["tracking_error_max_m"] + POS_TOL_M
+    return m, ms
 
 
 @pytest.mark.slow

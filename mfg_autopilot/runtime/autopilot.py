@@ -263,6 +263,8 @@ class Autopilot:
                "sensed_ids": None if obs.sensed is None else obs.sensed.ids.tolist(),
                "backstop_active": bool(np.asarray(getattr(self.ctrl, "backstop_active", [False]))[0]),
                "w_H": w["w_H"][0], "wall_s": time.time()}
+        if getattr(self, "_plan_pos", None) is not None:
+            rec["plan_pos_m"] = self._plan_pos[0]
         every = self.cfg.log_fpk_weights_every
         if "w_F" in w and every and (k % every == 0 or k >= self.cfg.steps - 1):
             rec["w_F"] = w["w_F"][0]     # thinned: 69 floats are half the line and the log's largest CPU cost
@@ -287,7 +289,14 @@ class Autopilot:
 
     def _act(self, obs: Observation):
         act = getattr(self.ctrl, "act", None)
-        return act(obs) if act is not None else self.ctrl.step(obs)
+        if act is None:
+            return self.ctrl.step(obs)
+        info = act(obs)
+        # the own plan particle at this step (finish() advances the plan): logged, so that a flight's tracking error
+        # and the plan's guarantee can be checked afterwards (mfg_swarm.metrics.separation_guarantee)
+        plan_pos = getattr(self.ctrl, "plan_positions_m", None)
+        self._plan_pos = plan_pos() if plan_pos is not None else None
+        return info
 
     def _finish(self) -> None:
         finish = getattr(self.ctrl, "finish", None)
