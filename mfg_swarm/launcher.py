@@ -35,8 +35,8 @@ from mfg_autopilot.presets import make_controller, preset_by_name
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_new_lines, read_vehicle_tlog, realtime_grid
-from .results import METRIC_KEYS, Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
 from .metrics import separation_guarantee
+from .results import METRIC_KEYS, Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
 from .scenarios import Scenario
 from .sim import plant_params_for
 

@@ -101,6 +101,7 @@ class Autopilot:
         self._home: HomePosition | None = None
         self.frame: VehicleFrame | None = None        # the vehicle's LOCAL_NED against the swarm frame (a mission)
         self.z_sp_local_m: float | None = None        # the altitude setpoint (LOCAL_NED z) with a mission
+        self._plan_pos: np.ndarray | None = None      # MFG default: the own plan particle at the current step (_act)
 
     # ---------------------------------------------------------------- frames
     def swarm_state(self, p: LocalPositionNed) -> np.ndarray:
@@ -263,7 +264,7 @@ class Autopilot:
                "sensed_ids": None if obs.sensed is None else obs.sensed.ids.tolist(),
                "backstop_active": bool(np.asarray(getattr(self.ctrl, "backstop_active", [False]))[0]),
                "w_H": w["w_H"][0], "wall_s": time.time()}
-        if getattr(self, "_plan_pos", None) is not None:
+        if self._plan_pos is not None:
             rec["plan_pos_m"] = self._plan_pos[0]
         every = self.cfg.log_fpk_weights_every
         if "w_F" in w and every and (k % every == 0 or k >= self.cfg.steps - 1):
