@@ -78,7 +78,8 @@ def collisions(pos_m: np.ndarray, radius_m: float = COLLISION_DISTANCE_M) -> dic
             "min_pair_distance_m": dmin, "closest_pair": closest, "pairs": sorted(pairs_hit)}
 
 
-def separation_guarantee(pos_m: np.ndarray, plan_pos_m: np.ndarray, tracking: np.ndarray | None = None) -> dict:
+def separation_guarantee(pos_m: np.ndarray, plan_pos_m: np.ndarray, tracking: np.ndarray | None = None,
+                         min_separation_m: float | None = None) -> dict:
     """The plan-tracking guarantee of docs/default_controller.md ("The statement"), evaluated on one flight.
 
     pos_m, plan_pos_m: (T+1, N, 2) each UAV's position and its own plan particle's at the control instants;
@@ -92,7 +93,8 @@ def separation_guarantee(pos_m: np.ndarray, plan_pos_m: np.ndarray, tracking: np
 
     Returns {"plan_min_separation_m": the particles' smallest distance along the segments,
     "tracking_error_max_m": e_max, "separation_bound_m": plan_min_separation - 2 e_max (negative: no guarantee),
-    "min_separation_m": the UAVs' smallest distance, the same set, "uavs": how many tracked throughout}."""
+    "min_separation_m": the UAVs' smallest distance, the same set, "uavs": how many tracked throughout}.
+    ``min_separation_m``: the whole swarm's, if already known (``collisions(pos_m)``): used when every UAV tracked."""
     pos = np.asarray(pos_m, dtype=float)
     plan = np.asarray(plan_pos_m, dtype=float)
     if pos.shape != plan.shape or pos.ndim != 3 or pos.shape[2] != 2:
@@ -101,9 +103,9 @@ def separation_guarantee(pos_m: np.ndarray, plan_pos_m: np.ndarray, tracking: np
     pos, plan = pos[:, keep], plan[:, keep]
     e_max = float(np.max(np.linalg.norm(pos - plan, axis=2))) if pos.size else 0.0
     plan_min = collisions(plan)["min_pair_distance_m"]
+    flown = min_separation_m if (min_separation_m is not None and keep.all()) else collisions(pos)["min_pair_distance_m"]
     return {"plan_min_separation_m": float(plan_min), "tracking_error_max_m": e_max,
-            "separation_bound_m": float(plan_min - 2.0 * e_max), "min_separation_m": float(collisions(pos)["min_pair_distance_m"]),
-            "uavs": int(keep.sum())}
+            "separation_bound_m": float(plan_min - 2.0 * e_max), "min_separation_m": float(flown), "uavs": int(keep.sum())}
 
 
 def arrivals(pos_m: np.ndarray, dest_m: np.ndarray, dt_s: float, tol_m: float = ARRIVAL_TOLERANCE_M) -> tuple[np.ndarray, np.ndarray]:

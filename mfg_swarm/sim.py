@@ -312,7 +312,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         tracking = np.ones((T + 1, n), dtype=bool)
         if cfg.fail_vehicle is not None:
             tracking[int(np.ceil(cfg.fail_at_s / dt - 1e-9)):, cfg.fail_vehicle] = False
-        metrics["guarantee"] = {"certified": cert.get("clearance_m") is not None, **separation_guarantee(pos, plan_pos, tracking)}
+        metrics["guarantee"] = {"certified": cert.get("clearance_m") is not None, **separation_guarantee(pos, plan_pos, tracking, metrics["min_separation_m"])}
     if cfg.gust is not None:
         metrics["gust"] = {k: getattr(cfg.gust, k) for k in ("start_s", "duration_s", "acc_m_s2", "spread", "jitter_deg")}
     return traj, metrics

@@ -141,3 +141,13 @@ def test_property_the_guarantee_bound_never_exceeds_the_flown_separation(seed):
     pos = plan + rng.normal(scale=0.3, size=plan.shape)
     g = separation_guarantee(pos, plan)
     assert g["min_separation_m"] >= g["separation_bound_m"] - 1e-12
+
+
+def test_separation_guarantee_reuses_a_known_min_separation_only_when_every_uav_tracked():
+    rng = np.random.default_rng(2)
+    plan = rng.uniform(-5, 5, size=(1, 6, 2)) + np.arange(5)[:, None, None] * 0.1
+    pos = plan + 0.05
+    assert separation_guarantee(pos, plan, min_separation_m=-1.0)["min_separation_m"] == -1.0
+    tracking = np.ones((5, 6), dtype=bool)
+    tracking[3:, 0] = False
+    assert separation_guarantee(pos, plan, tracking, min_separation_m=-1.0)["min_separation_m"] > 0
