@@ -214,6 +214,34 @@ class OrcaController:
         """(n, 2) each row's mission destination (no slot rule: module docstring)."""
         return self._dest
 
+    _SENSED_POS_MARGIN_M = 0.05
+    """Bound on how far a sensed position may lie from the true one: the proximity sensor's ADS-B
+    resolution (1e-7 deg: <= 0.0056 m north, 0.0038 m east, half a step each way), with room."""
+
+    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """For a bank holding every vehicle (observed states (N, 4)): the reach (base_m, extra_m (N,))
+        (``interface.Controller``): a sensed vehicle j can change row i's action only if
+        |r_j - r_i| <= base + extra_i + extra_j, so a simulator may deliver only those (None: all within
+        the sensor range). Row i uses only its ``max_neighbours`` nearest sensed vehicles within
+        ``neighbour_dist_m`` (select_neighbours). With R_i the true distance to its max_neighbours-th nearest
+        other vehicle (capped at neighbour_dist_m) and e the position margin: if R_i + e < neighbour_dist_m,
+        those max_neighbours vehicles are sensed within R_i + e, so every selected j is sensed within
+        R_i + e and truly within R_i + 2 e; otherwise a selected j is truly within neighbour_dist_m + e
+        <= R_i + 2 e as well. Hence base = 2 e, extra_i = R_i: the selected sets, and the actions, are
+        those of the full sensed set bit for bit (the selection's order is a total order on (distance, id),
+        which any superset of the selected vehicles reproduces)."""
+        states = np.asarray(states, dtype=float)
+        n, k = states.shape[0], self.params.max_neighbours
+        if n <= k + 1:
+            return None
+        from scipy.spatial import cKDTree       # here: only a simulator asks for a reach
+        pos = np.ascontiguousarray(states[:, 0:2])
+        nd = float(self.params.neighbour_dist_m)
+        # the (k + 1)-th nearest point, the own vehicle included (at distance 0, among the first whatever the ties)
+        d, _ = cKDTree(pos).query(pos, k=[k + 1], distance_upper_bound=nd)
+        extra = np.minimum(d[:, 0], nd)          # inf (fewer than k within nd) -> nd
+        return 2.0 * self._SENSED_POS_MARGIN_M, extra
+
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """Not used: ORCA exchanges nothing (``uses_t0_exchange`` is False)."""
 
