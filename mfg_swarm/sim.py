@@ -258,7 +258,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             seen = np.flatnonzero(np.bincount(other, minlength=n))     # = np.unique(other), without a sort
             q = np.zeros_like(obs)
             q[seen] = quantise_sensed_states(obs[seen])
-            sensed = Neighbours(q[other], owner, other)
+            sensed = Neighbours(np.take(q, other, axis=0), owner, other)     # = q[other]; np.take copies ~3x faster
         info = ctrl.step(Observation(k, k * dt, obs, heard, sensed, heard_summary))
         acc_cmd = f32(info.acc_m_s2)
         if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:

@@ -129,8 +129,9 @@ def orca_velocities_m_s(own: np.ndarray, v_pref_m_s: np.ndarray, sensed: Neighbo
     if sel.size == 0:
         return v_new
     owner = np.asarray(sensed.owner, dtype=np.int64)[sel]
-    rel = sensed.states[sel, 0:2] - own[owner, 0:2]
-    vel = sensed.states[sel, 2:4]
+    chosen = np.take(sensed.states, sel, axis=0)       # = sensed.states[sel]: np.take copies rows several times faster
+    rel = chosen[:, 0:2] - np.take(own, owner, axis=0)[:, 0:2]
+    vel = chosen[:, 2:4]
     rows = np.flatnonzero(np.bincount(owner, minlength=n))
     bounds = np.searchsorted(owner, np.r_[rows, n])
     if backend == "numba":
