@@ -55,10 +55,11 @@ in its k-d tree, RVOSimulator.cc, KdTree::buildAgentTree) - the reference. Agree
 discs, infeasible programmes: the test states 1e-4 m/s) and 3,000 single-row cases; ``sim --scenario
 swap4 --n 1000 --mode orca --steps 400 --seed 1`` gives bit-identical trajectories with either
 backend (2370 collided pairs, min separation 8.2e-05 m), 45 s wall with "rvo2", 14 s with "numba".
-At N = 10,000 (same command) 590 s wall with "numba" (not finished in 29 min with "rvo2"), over
-the 120 s target: the controller is no longer the cost: the simulator's proximity sensing
-(``mock_vehicle.proximity.sensed_rows``, an argsort of every sensed pair) takes most of the step
-once ORCA's crowds form (docs/benchmarks.md, "ORCA baseline").
+At N = 10,000 (same command) 590 s wall with "numba" (not finished in 29 min with "rvo2"), most of
+it the simulator's sensing of ORCA's crowds (up to 17 million sensed pairs a step); since
+2026-11-25 55 s (``wall_s``), bit-identical: the bank declares ``sensed_cutoff_m`` (only a row's
+``max_neighbours`` nearest can change its action, so the simulator lists ~600,000 pairs instead) and
+the simulator builds the sorted sensed rows without a sort (docs/benchmarks.md, "Eighth round").
 
 Shapes: own states (n, 4) [x_m, y_m, vx_m_s, vy_m_s]; velocities and accelerations (n, 2).
 """
