@@ -43,7 +43,7 @@ from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_
 from .metrics import arrivals, separation_guarantee
 from .results import Trajectories, compute_metrics
 from .scenarios import Scenario
-from .spatial import count_within, pairs_within_reach, pos_sums_by_tree, sorted_unique
+from .spatial import count_within, pairs_within_reach, pos_sums_by_tree, rows_within_reach, sorted_unique
 
 __all__ = ["SimConfig", "GustParams", "simulate", "plant_params_for", "as_f32", "gust_acc_m_s2"]
 
@@ -242,23 +242,27 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         w_ref[k] = ctrl.weights()["w_H"][0]
         heard = sensed = None
         heard_summary = None
-        sp = None
+        sp = rows = None
         if sensor_range_m is not None and n > 1 and not sensing_unused:
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
             # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md);
             # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m reach, if any)
             reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
-            sp = None if reach is None else pairs_within_reach(None, obs[:, 0:2], reach, sensor_range_m, clip=True, vel=obs[:, 2:4])
-            sp = sensed_pairs(obs, sensor_range_m) if sp is None else sp
+            if reach is not None and not cfg.gossips:      # the rows straight away (hear() would need the pairs)
+                rows = rows_within_reach(obs[:, 0:2], reach, sensor_range_m, vel=obs[:, 2:4])
+            else:
+                sp = None if reach is None else pairs_within_reach(None, obs[:, 0:2], reach, sensor_range_m, clip=True,
+                                                                   vel=obs[:, 2:4])
+                sp = sensed_pairs(obs, sensor_range_m) if sp is None else sp
         if cfg.gossips:
             heard, heard_summary, counts = hear(obs, cfg.range_m, ctrl, k, sp, sensor_range_m)
             comm[k] += counts
-        if sp is not None:
-            owner, other = sensed_rows(sp)
+        if sp is not None or rows is not None:
+            owner, other = rows if rows is not None else sensed_rows(sp)
             seen = np.flatnonzero(np.bincount(other, minlength=n))     # = np.unique(other), without a sort
             q = np.zeros_like(obs)
             q[seen] = quantise_sensed_states(obs[seen])
-            sensed = Neighbours(q[other], owner, other)
+            sensed = Neighbours(np.take(q, other, axis=0), owner, other)     # = q[other]; np.take copies ~3x faster
         if plan_pos is not None:
             ctrl.prepare(k)
             plan_pos[k] = ctrl.plan_positions_m()

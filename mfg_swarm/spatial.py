@@ -33,7 +33,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["count_within", "pos_sums_by_tree", "pairs_within_reach", "sorted_unique", "GRID_MIN_N", "CELLS_PER_RANGE"]
+__all__ = ["count_within", "pos_sums_by_tree", "pairs_within_reach", "rows_within_reach", "sorted_unique", "GRID_MIN_N", "CELLS_PER_RANGE"]
 
 GRID_MIN_N = 2048
 """Below this many vehicles the k-d tree count is used (cheap there; numba is not imported)."""
@@ -270,9 +270,15 @@ def _grid(pts: np.ndarray, s: float):
     return order, cell_start, ncx, ncy, x0, y0, float(s)
 
 
-def _pairs_within_reach_grid(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h: float,
-                             vel: np.ndarray | None) -> np.ndarray:
-    """The pairs of pairs_within_reach (also within cap_m, scipy's test), sorted, by the compiled grid kernel."""
+_KEYS_ROOM = [0]
+"""The largest pair count the grid kernel has returned so far: the room the next call starts with (a crowded
+swarm has far more than 16 pairs per vehicle, and a kernel run that overflows its room runs twice)."""
+
+
+def _reach_keys(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h: float,
+                vel: np.ndarray | None) -> np.ndarray:
+    """The keys i * n + j (i < j), in no particular order, of the pairs of pairs_within_reach (also within cap_m,
+    scipy's test), by the compiled grid kernel."""
     n = pts.shape[0]
     q = float(np.median(extra))
     order, cell_start, ncx, ncy, x0, y0, s = _grid(pts, max(base + 2.0 * q, 1e-6))
@@ -285,14 +291,80 @@ def _pairs_within_reach_grid(pts: np.ndarray, base: float, extra: np.ndarray, ca
     if vel is not None:
         us, vs = np.ascontiguousarray(vel[order, 0], dtype=np.float64), np.ascontiguousarray(vel[order, 1], dtype=np.float64)
     args = (xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, float(base), cap2, n, us, vs, float(h) if vel is not None else -1.0)
-    keys = np.empty(16 * n + 1024, dtype=np.int64)
+    keys = np.empty(max(16 * n + 1024, _KEYS_ROOM[0] + _KEYS_ROOM[0] // 4), dtype=np.int64)
     total = kern(*args, keys)
     if total > keys.size:
         keys = np.empty(total, dtype=np.int64)
         kern(*args, keys)
-    keys = keys[:total]
+    _KEYS_ROOM[0] = max(_KEYS_ROOM[0], total)
+    return keys[:total]
+
+
+def _pairs_within_reach_grid(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h: float,
+                             vel: np.ndarray | None) -> np.ndarray:
+    """The pairs of pairs_within_reach (also within cap_m, scipy's test), sorted, by the compiled grid kernel."""
+    n = pts.shape[0]
+    keys = _reach_keys(pts, base, extra, cap_m, h, vel)
     keys.sort()
     return np.stack([keys // n, keys % n], axis=1)
+
+
+@functools.cache
+def _compile_rows():
+    from numba import njit
+
+    @njit(cache=True, nogil=True)
+    def rows_of_keys(keys, n):
+        """Both directions of the pairs with keys i * n + j (distinct, i != j, any order) as (owner (2p,),
+        other (2p,)) sorted by (owner, other): two counting passes, by other then (stably) by owner."""
+        p = keys.shape[0]
+        cnt = np.zeros(n + 1, dtype=np.int64)           # rows per vehicle: as owner = as other (both directions)
+        for e in range(p):
+            i = keys[e] // n
+            j = keys[e] - i * n
+            cnt[i + 1] += 1
+            cnt[j + 1] += 1
+        for v in range(n):
+            cnt[v + 1] += cnt[v]
+        by_other = np.empty(2 * p, dtype=np.int64)     # the owners, grouped by other
+        fill = cnt[:n].copy()
+        for e in range(p):
+            i = keys[e] // n
+            j = keys[e] - i * n
+            by_other[fill[j]] = i
+            fill[j] += 1
+            by_other[fill[i]] = j
+            fill[i] += 1
+        owner = np.empty(2 * p, dtype=np.int64)
+        other = np.empty(2 * p, dtype=np.int64)
+        fill = cnt[:n].copy()
+        for o in range(n):                             # others ascending: within an owner, its others ascending
+            for t in range(cnt[o], cnt[o + 1]):
+                w = by_other[t]
+                owner[fill[w]] = w
+                other[fill[w]] = o
+                fill[w] += 1
+        return owner, other
+
+    return rows_of_keys
+
+
+def rows_within_reach(pts: np.ndarray, reach, cap_m: float, vel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(owner (m,), other (m,)) = ``mock_vehicle.proximity.sensed_rows(pairs_within_reach(None, pts, reach, cap_m,
+    clip=True, vel=vel))``, bit for bit, without sorting: the grid kernel's pairs, in the order it finds them, go
+    through two linear counting passes (by other, then by owner) instead of a sort of the pairs and the rows'
+    sort by (owner, other) - most of a simulator step when thousands of vehicles crowd (~10^6 rows)."""
+    n = pts.shape[0]
+    if n < 2:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    base, extra, h = (reach, None, None) if np.isscalar(reach) else (tuple(reach) + (None,))[:3]
+    if h is not None and vel is None:
+        raise ValueError("a reach with a relative-velocity horizon needs the velocities (vel)")
+    vel = None if h is None else np.asarray(vel, dtype=np.float64).reshape(-1, 2)
+    extra = np.zeros(n) if extra is None else np.asarray(extra, dtype=float)
+    keys = _reach_keys(np.ascontiguousarray(pts, dtype=np.float64), float(base), extra, float(cap_m),
+                       -1.0 if h is None else float(h), vel)
+    return _compile_rows()(keys, n)
 
 
 def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float, clip: bool = False,

@@ -47,6 +47,10 @@ def sensed_pairs(states_f32: np.ndarray, range_m: float) -> np.ndarray:
     return np.asarray(cKDTree(s[:, 0:2]).query_pairs(float(range_m), output_type="ndarray"), dtype=np.int64).reshape(-1, 2)
 
 
+_RADIX_IDS = 1 << 16
+"""``sensed_rows`` sorts by radix passes while every vehicle id fits 16 bits (below this), else by one argsort."""
+
+
 def sensed_rows(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Both directions of each pair as (owner (m,), other (m,)), sorted by (owner, other):
     the order in which a vehicle receives its traffic (by ICAO address)."""
@@ -55,6 +59,14 @@ def sensed_rows(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     other = np.concatenate([pairs[:, 1], pairs[:, 0]])
     if owner.size == 0:
         return owner, other
+    if int(pairs.min()) >= 0 and int(pairs.max()) < _RADIX_IDS:
+        # two stable passes, by other then by owner (least significant key first): (owner, other) order. A stable
+        # sort of 16-bit keys is numpy's radix sort, linear in the m rows; the argsort of the combined int64 key
+        # below is O(m log m), most of a step once thousands of vehicles crowd within the range (~10^6 rows)
+        by_other = np.argsort(other.astype(np.uint16), kind="stable")
+        owner = owner[by_other]
+        by_owner = np.argsort(owner.astype(np.uint16), kind="stable")
+        return owner[by_owner], other[by_other[by_owner]]
     order = np.argsort(owner * (int(other.max()) + 1) + other)   # keys are distinct: any sort gives one order
     return owner[order], other[order]
 

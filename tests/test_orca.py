@@ -273,3 +273,48 @@ print("new", sorted(k for k in after if after[k] != before.get(k, 0)))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.strip().splitlines()[-1] == "new []"
+
+
+@pytest.mark.parametrize("case", range(8))
+def test_the_sensed_cutoff_keeps_every_action_bit_for_bit(case):
+    """OrcaController.sensed_cutoff_m: the simulator's sensing restricted to the declared reach
+    (spatial.pairs_within_reach, clip at the sensor range) gives the same accelerations, bit for bit,
+    as every vehicle within the sensor range: crowds where hundreds are sensed and only the 30 nearest
+    count, sparse vehicles with fewer than 30 in range, ties (integer grids, coincident vehicles),
+    quantised sensed states (the ADS-B resolution), banks too small for a cutoff."""
+    from mfg_swarm.sim import as_f32
+    from mfg_swarm.spatial import pairs_within_reach
+    from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
+
+    rng = np.random.default_rng(100 + case)
+    n = [20, 31, 32, 200, 600, 600, 900, 400][case]
+    if case in (4, 6):        # a tight crowd (0.4 m apart), a stream around it and some far away
+        pos = np.concatenate([rng.normal(0.0, 2.0, (n // 2, 2)), rng.uniform(-25, 25, (n // 2 - 20, 2)),
+                              rng.uniform(200, 300, (20, 2))])
+    elif case == 5:           # integer grid: many equal distances, and coincident vehicles
+        pos = rng.integers(-6, 6, (n, 2)).astype(float)
+    elif case == 7:           # crowds at about the neighbour distance from each other
+        pos = np.concatenate([rng.normal(0.0, 0.5, (n // 2, 2)), rng.normal(0.0, 0.5, (n // 2, 2)) + [9.9, 0.0]])
+    else:
+        pos = rng.uniform(-15.0, 15.0, (n, 2))
+    obs = as_f32(np.concatenate([pos, rng.uniform(-4.0, 4.0, (n, 2))], axis=1))
+    dest = rng.uniform(-50.0, 50.0, (n, 2))
+    ctrl = OrcaController(DEFAULT, dest)
+    r_s = DEFAULT.backstop.sensor_range_m
+
+    def act(pairs):
+        owner, other = sensed_rows(pairs)
+        q = np.zeros_like(obs)
+        seen = np.unique(other)
+        q[seen] = quantise_sensed_states(obs[seen])
+        return ctrl.step(Observation(0, 0.0, obs, None, Neighbours(q[other], owner, other))).acc_m_s2
+
+    full = sensed_pairs(obs, r_s)
+    reach = ctrl.sensed_cutoff_m(obs)
+    if n <= ctrl.params.max_neighbours + 1:
+        assert reach is None
+        return
+    cut = pairs_within_reach(None, obs[:, 0:2], reach, r_s, clip=True, vel=obs[:, 2:4])
+    if case in (4, 6, 7):
+        assert cut.shape[0] < 0.5 * full.shape[0]          # the cutoff does drop vehicles there
+    np.testing.assert_array_equal(act(cut), act(full))

@@ -148,6 +148,39 @@ def test_sensed_pairs_are_the_simulators_query_sorted_by_owner_and_id():
     assert np.all(d <= 10.0)
 
 
+def _sensed_rows_by_argsort(pairs):
+    """sensed_rows as it was (one argsort of the combined key): the reference of its radix passes."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    owner = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    other = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    if owner.size == 0:
+        return owner, other
+    order = np.argsort(owner * (int(other.max()) + 1) + other)
+    return owner[order], other[order]
+
+
+@pytest.mark.parametrize("n", [2, 3, 50, 4000, 65536, 70000])
+def test_sensed_rows_equal_the_argsort_of_owner_and_other(n):
+    """The radix passes (ids below 2^16) and the fallback (larger ids) give the rows of one argsort of
+    (owner, other), bit for bit: on no pair, one pair, and random pair sets in random order."""
+    rng = np.random.default_rng(n)
+    cases = [np.zeros((0, 2), dtype=np.int64), np.array([[0, n - 1]]), np.array([[n - 2, n - 1]])]
+    for m in (1, 7, 5000):
+        i = rng.integers(0, n, m)
+        j = rng.integers(0, n, m)
+        keep = i != j
+        k = np.unique(np.minimum(i, j)[keep] * n + np.maximum(i, j)[keep])
+        cases.append(rng.permutation(np.stack([k // n, k % n], axis=1)))
+    for pairs in cases:
+        owner, other = sensed_rows(pairs)
+        ref_owner, ref_other = _sensed_rows_by_argsort(pairs)
+        assert owner.dtype == other.dtype == np.int64
+        np.testing.assert_array_equal(owner, ref_owner)
+        np.testing.assert_array_equal(other, ref_other)
+    owner, other = sensed_rows(np.zeros(0, dtype=np.int64))          # the empty input of any shape
+    assert owner.shape == other.shape == (0,)
+
+
 # ---------------------------------------------------------------- the world
 def _state(x, y=0.0):
     return np.array([x, y, 0.5, -0.25])

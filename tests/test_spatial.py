@@ -117,3 +117,30 @@ def test_grid_pairs_within_reach_equal_the_tree_ones_and_the_brute_force_ones(se
     assert pairs_within_reach(tree, pts, (1.0, extra), 5.0) is None
     with pytest.raises(ValueError, match="velocities"):
         pairs_within_reach(tree, pts, (1.0, extra, 2.0), 100.0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_rows_within_reach_equal_the_sorted_rows_of_the_pairs(seed):
+    """rows_within_reach (grid pairs in kernel order, two counting passes) gives the rows of
+    sensed_rows(pairs_within_reach(..., clip=True)), bit for bit: scalar reaches, per-vehicle extras,
+    a closest-approach horizon; crowds, coincident vehicles, no pair, one pair, one vehicle."""
+    from mfg_swarm.spatial import rows_within_reach
+    from mock_vehicle.proximity import sensed_rows
+
+    rng = np.random.default_rng(seed)
+    n = [2, 3, 40, 500, 3000, 1200][seed]
+    pts = rng.normal(0.0, [1.0, 30.0, 3.0, 5.0, 20.0, 2.0][seed], (n, 2)).astype(np.float32).astype(np.float64)
+    if n > 20:
+        pts[5:15] = pts[0]
+    vel = rng.uniform(-4.0, 4.0, (n, 2))
+    reaches = [0.0, 0.5, 3.0, (0.1, rng.uniform(0.0, 3.0, n)), (1.0, rng.uniform(0.0, 0.5, n), 2.0), (0.1, np.full(n, 20.0))]
+    for reach in reaches:
+        ref = sensed_rows(pairs_within_reach(None, pts, reach, 10.0, clip=True, vel=vel))
+        got = rows_within_reach(pts, reach, 10.0, vel=vel)
+        for a, b in zip(got, ref):
+            assert a.dtype == np.int64
+            np.testing.assert_array_equal(a, b)
+    one = rows_within_reach(np.array([[0.0, 0.0], [1.0, 0.0], [50.0, 0.0]]), 2.0, 10.0)   # one pair within reach
+    assert one[0].tolist() == [0, 1] and one[1].tolist() == [1, 0]
+    assert all(a.size == 0 for a in rows_within_reach(np.array([[0.0, 0.0], [20.0, 0.0]]), 0.0, 10.0))   # none
+    assert all(a.size == 0 for a in rows_within_reach(np.zeros((1, 2)), 1.0, 10.0))                      # one vehicle

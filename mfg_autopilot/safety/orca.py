@@ -55,10 +55,11 @@ in its k-d tree, RVOSimulator.cc, KdTree::buildAgentTree) - the reference. Agree
 discs, infeasible programmes: the test states 1e-4 m/s) and 3,000 single-row cases; ``sim --scenario
 swap4 --n 1000 --mode orca --steps 400 --seed 1`` gives bit-identical trajectories with either
 backend (2370 collided pairs, min separation 8.2e-05 m), 45 s wall with "rvo2", 14 s with "numba".
-At N = 10,000 (same command) 590 s wall with "numba" (not finished in 29 min with "rvo2"), over
-the 120 s target: the controller is no longer the cost: the simulator's proximity sensing
-(``mock_vehicle.proximity.sensed_rows``, an argsort of every sensed pair) takes most of the step
-once ORCA's crowds form (docs/benchmarks.md, "ORCA baseline").
+At N = 10,000 (same command) 590 s wall with "numba" (not finished in 29 min with "rvo2"), most of
+it the simulator's sensing of ORCA's crowds (up to 17 million sensed pairs a step); since
+2026-11-25 55 s (``wall_s``), bit-identical: the bank declares ``sensed_cutoff_m`` (only a row's
+``max_neighbours`` nearest can change its action, so the simulator lists ~600,000 pairs instead) and
+the simulator builds the sorted sensed rows without a sort (docs/benchmarks.md, "Eighth round").
 
 Shapes: own states (n, 4) [x_m, y_m, vx_m_s, vy_m_s]; velocities and accelerations (n, 2).
 """
@@ -129,8 +130,9 @@ def orca_velocities_m_s(own: np.ndarray, v_pref_m_s: np.ndarray, sensed: Neighbo
     if sel.size == 0:
         return v_new
     owner = np.asarray(sensed.owner, dtype=np.int64)[sel]
-    rel = sensed.states[sel, 0:2] - own[owner, 0:2]
-    vel = sensed.states[sel, 2:4]
+    chosen = np.take(sensed.states, sel, axis=0)       # = sensed.states[sel]: np.take copies rows several times faster
+    rel = chosen[:, 0:2] - np.take(own, owner, axis=0)[:, 0:2]
+    vel = chosen[:, 2:4]
     rows = np.flatnonzero(np.bincount(owner, minlength=n))
     bounds = np.searchsorted(owner, np.r_[rows, n])
     if backend == "numba":
@@ -213,6 +215,34 @@ class OrcaController:
     def destinations_m(self) -> np.ndarray:
         """(n, 2) each row's mission destination (no slot rule: module docstring)."""
         return self._dest
+
+    _SENSED_POS_MARGIN_M = 0.05
+    """Bound on how far a sensed position may lie from the true one: the proximity sensor's ADS-B
+    resolution (1e-7 deg: <= 0.0056 m north, 0.0038 m east, half a step each way), with room."""
+
+    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """For a bank holding every vehicle (observed states (N, 4)): the reach (base_m, extra_m (N,))
+        (``interface.Controller``): a sensed vehicle j can change row i's action only if
+        |r_j - r_i| <= base + extra_i + extra_j, so a simulator may deliver only those (None: all within
+        the sensor range). Row i uses only its ``max_neighbours`` nearest sensed vehicles within
+        ``neighbour_dist_m`` (select_neighbours). With R_i the true distance to its max_neighbours-th nearest
+        other vehicle (capped at neighbour_dist_m) and e the position margin: if R_i + e < neighbour_dist_m,
+        those max_neighbours vehicles are sensed within R_i + e, so every selected j is sensed within
+        R_i + e and truly within R_i + 2 e; otherwise a selected j is truly within neighbour_dist_m + e
+        <= R_i + 2 e as well. Hence base = 2 e, extra_i = R_i: the selected sets, and the actions, are
+        those of the full sensed set bit for bit (the selection's order is a total order on (distance, id),
+        which any superset of the selected vehicles reproduces)."""
+        states = np.asarray(states, dtype=float)
+        n, k = states.shape[0], self.params.max_neighbours
+        if n <= k + 1:
+            return None
+        from scipy.spatial import cKDTree       # here: only a simulator asks for a reach
+        pos = np.ascontiguousarray(states[:, 0:2])
+        nd = float(self.params.neighbour_dist_m)
+        # the (k + 1)-th nearest point, the own vehicle included (at distance 0, among the first whatever the ties)
+        d, _ = cKDTree(pos).query(pos, k=[k + 1], distance_upper_bound=nd)
+        extra = np.minimum(d[:, 0], nd)          # inf (fewer than k within nd) -> nd
+        return 2.0 * self._SENSED_POS_MARGIN_M, extra
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """Not used: ORCA exchanges nothing (``uses_t0_exchange`` is False)."""
