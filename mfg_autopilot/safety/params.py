@@ -27,6 +27,12 @@ class BackstopParams:
     # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
     plan_mismatch_m: float = 0.5
     plan_mismatch_s: float = 0.5    # velocity weight of that distance (a hovering vehicle in a moving plan stands out)
+    # MFG only: a sensed vehicle that brakes (its sensed velocity change since the previous control step, along its
+    # velocity) harder than its own plan particle by more than this is also unplanned if one more period of that
+    # braking takes it beyond plan_mismatch_m (a vehicle failing into Hold brakes at ~2 m/s^2: seen one control period
+    # earlier; calm flight |acceleration - plan's| <= ~1.4 m/s^2 at the 99.9th percentile); only for rows that sense
+    # no vehicle off the plan already (UAVs escaping a failed one brake and swerve too); 0 turns the test off
+    plan_mismatch_brake_m_s2: float = 1.75
     own_slot_claim: bool = True     # MFG: a sensed vehicle within min(plan_mismatch_m, spacing / 2) of the own particle is unplanned ...
     own_slot_claim_max_speed_m_s: float = 0.5   # ... while that particle is this slow (parked: before its start, after its arrival)
     planned_response_rigid: bool = False   # MFG: also the response to planned vehicles when the plan is rigid (conflict-free by construction)
