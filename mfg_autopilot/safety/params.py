@@ -51,7 +51,7 @@ class BackstopParams:
     escape_threat_weight: float = 1.0      # weight of a conflict with a threat in the escape cost
     escape_planned_weight: float = 1.0     # ... and with a planned vehicle
     escape_effort: float = 1.0         # weight of |a - a_nom|^2 / a_max^2 (minimal intervention)
-    escape_lateral_cost: float = 1.0   # lateral (to the own velocity) deviations cost this x more than along-track
+    escape_lateral_cost: float = 1.5   # lateral (to the own velocity) deviations cost this x more than along-track (1.0 before: docs/default_controller.md, "Failed vehicle in a dense stream")
     escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
     escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
     escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
