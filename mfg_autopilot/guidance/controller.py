@@ -263,7 +263,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_ids: tuple[np.ndarray, np.ndarray] | None = None     # (sorted ids, their plan particles): exchange_t0
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
         self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
-        # the acceleration test (BackstopParams.plan_mismatch_brake_m_s2): per plan particle (= per vehicle id), the
+        # the braking test (BackstopParams.plan_mismatch_brake_m_s2): per plan particle (= per vehicle id), the
         # velocity last sensed and its step; the plan's particle velocities by step; the simulator's full observed
         # states by step (sensed_cutoff_m), the previous sample of a vehicle the reach-limited delivery left out
         self._seen_v: np.ndarray | None = None
@@ -324,7 +324,9 @@ class DefaultMFGController(_DefaultBase):
         then looks at every sensed vehicle over candidate accelerations up to a_max, far beyond the
         trigger reach. Whether a vehicle is unplanned depends only on its own state and the plan
         (the common-mode re-check and the own-deviation gate only remove responses), so it is
-        decided here on the true states with a margin for the sensor's quantisation."""
+        decided here on the true states with a margin for the sensor's quantisation; the braking test
+        (_unplanned_by_braking) also on the states passed at the previous step (kept here; None when
+        there are none, a bank of one: the sensed_cutoff_m calls are the simulator's, one per step)."""
         bp = self.preset.backstop
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
@@ -333,7 +335,7 @@ class DefaultMFGController(_DefaultBase):
         hint = np.arange(states.shape[0]) if states.shape[0] == self.plan.N else None      # vehicle j <-> particle j
         k = self.plan.k
         if bp.plan_mismatch_brake_m_s2 > 0:
-            # kept for the acceleration test (_unplanned_by_braking): the previous sample of a vehicle no row was
+            # kept for the braking test (_unplanned_by_braking): the previous sample of a vehicle no row was
             # delivered at that step
             self._cutoff_hist = {kk: x for kk, x in self._cutoff_hist.items() if kk == k - 1}
             self._cutoff_hist[k] = states.copy()
@@ -341,8 +343,8 @@ class DefaultMFGController(_DefaultBase):
         if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
             return None
         if bp.plan_mismatch_brake_m_s2 > 0:
-            # the acceleration test on the same states, against their state at the previous step; margin: the
-            # quantisation of two velocity samples
+            # the braking test on the same states against their state at the previous step, without the observer's own
+            # deviation (it only removes flags); margin: the quantisation of two velocity samples
             prev = self._cutoff_hist.get(k - 1)
             if k >= 1 and (hint is None or prev is None or a_plan is None or prev.shape != states.shape):
                 return None
