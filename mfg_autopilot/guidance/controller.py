@@ -55,6 +55,39 @@ def _kernel_arg(a: np.ndarray, dtype) -> np.ndarray:
     return a if a.flags.writeable else a.copy()
 
 
+def braking_off_plan(q: np.ndarray, v_prev: np.ndarray, a_plan: np.ndarray, dt_s: float, brake_min_m_s2: float,
+                     beyond, a_own: np.ndarray | None = None) -> np.ndarray:
+    """(m,) bool: sensed states q (m, 4) that brake against their plan particle by more than brake_min_m_s2 and
+    that one more control period of that braking takes beyond the plan.
+
+    The acceleration is the sensed velocity change since the previous control step, (q_v - v_prev) / dt_s (the
+    sensor gives no acceleration); a_plan (m, 2) is the own plan particle's over the same step, a_dev the
+    difference. Braking: the component of a_dev along the previous velocity v_prev is below -brake_min_m_s2 (a
+    vehicle that fails into Hold brakes along its velocity at up to a_max; lateral accelerations - an escape, a
+    gust across the track - are not this test's). The state shifted by what a_dev adds in one period,
+    q + (a_dev dt^2 / 2, a_dev dt), is passed to beyond(states, rows) (-> (k,) bool: farther than the mismatch
+    threshold from the plan; rows: the indices into q). a_own (m, 2), if given: the observing row's own a_dev
+    (its own velocity change against its own particle's, known onboard); the braking must then exceed
+    brake_min_m_s2 relative to it too (a gust decelerates the observer and its neighbours alike: common mode).
+    A vehicle braking in Hold in a moving plan (~2 m/s^2 against its particle) is flagged one control period
+    before its state alone leaves the plan; a vehicle braking back towards the plan (a blown UAV recovering) is
+    not, unless it is far off already."""
+    a_dev = (q[:, 2:4] - v_prev) / dt_s - a_plan
+    speed = np.sqrt(v_prev[:, 0] ** 2 + v_prev[:, 1] ** 2)
+    along = (a_dev[:, 0] * v_prev[:, 0] + a_dev[:, 1] * v_prev[:, 1]) / np.maximum(speed, 1e-9)
+    brakes = (along < -brake_min_m_s2) & (speed > brake_min_m_s2 * dt_s)
+    if a_own is not None:
+        rel = a_dev - a_own
+        brakes &= (rel[:, 0] * v_prev[:, 0] + rel[:, 1] * v_prev[:, 1]) / np.maximum(speed, 1e-9) < -brake_min_m_s2
+    big = np.flatnonzero(brakes)
+    out = np.zeros(q.shape[0], dtype=bool)
+    if big.size:
+        ad = a_dev[big]
+        shifted = q[big] + np.concatenate([0.5 * dt_s * dt_s * ad, dt_s * ad], axis=1)
+        out[big] = beyond(shifted, big)
+    return out
+
+
 class _DefaultBase:
     def __init__(self, preset: Preset, destination_site_m: np.ndarray) -> None:
         if not isinstance(preset, DefaultPreset):
@@ -119,12 +152,18 @@ class _DefaultBase:
         """(m,) bool: sensed vehicles the controller did not expect (HJB_d: none known)."""
         return np.zeros(sensed_states.shape[0], dtype=bool)
 
+    def _unplanned_by_braking(self, sn: Neighbours, step: int, unplanned: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """(m,) bool: sensed vehicles flagged by their braking against the plan (MFG; HJB_d: none); unplanned (m,):
+        the entries already off the plan; own (n, 4): the rows' own states."""
+        return np.zeros(sn.states.shape[0], dtype=bool)
+
     def _backstop(self, own: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
         bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
         if not bp.enabled:
             return cap_norm(a_nom, a_max)
         sn = self._not_heard(_sensed(obs), obs.neighbours)
         unplanned = self._unplanned(sn.states, sn.ids)
+        unplanned |= self._unplanned_by_braking(sn, obs.step, unplanned, own)
         planned = ~unplanned              # on the plan itself (not only up to the common mode)
         if isinstance(getattr(self, "plan", None), (RigidPlan, GroupPlan)) and not bp.planned_response_rigid:
             # a rigid plan keeps every planned pair at its start distance by construction: the tracking alone holds
@@ -224,6 +263,14 @@ class DefaultMFGController(_DefaultBase):
         self._plan_ids: tuple[np.ndarray, np.ndarray] | None = None     # (sorted ids, their plan particles): exchange_t0
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
         self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
+        # the braking test (BackstopParams.plan_mismatch_brake_m_s2): per plan particle (= per vehicle id), the
+        # velocity last sensed and its step; the plan's particle velocities by step; the simulator's full observed
+        # states by step (sensed_cutoff_m), the previous sample of a vehicle the reach-limited delivery left out
+        self._seen_v: np.ndarray | None = None
+        self._seen_k: np.ndarray | None = None
+        self._own_v_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' own velocities then)
+        self._plan_v_hist: dict[int, np.ndarray] = {}
+        self._cutoff_hist: dict[int, np.ndarray] = {}
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
         """The one exchange: every row gets the same plan from the same (N, 4) states."""
@@ -237,6 +284,8 @@ class DefaultMFGController(_DefaultBase):
             self._plan_ids = (ids[order], order)
         self._plan_tree = None
         self._prepared, self._pending = None, None
+        self._seen_v, self._seen_k, self._own_v_prev = None, None, None
+        self._plan_v_hist, self._cutoff_hist = {}, {}
         rigid = (rigid_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2,
                                 translation=p.rigid_translation)
                  if p.rigid_plan and p.use_slots else None)
@@ -282,15 +331,37 @@ class DefaultMFGController(_DefaultBase):
         then looks at every sensed vehicle over candidate accelerations up to a_max, far beyond the
         trigger reach. Whether a vehicle is unplanned depends only on its own state and the plan
         (the common-mode re-check and the own-deviation gate only remove responses), so it is
-        decided here on the true states with a margin for the sensor's quantisation."""
+        decided here on the true states with a margin for the sensor's quantisation; the braking test
+        (_unplanned_by_braking) also on the states passed at the previous step (kept here; None when
+        there are none, a bank of one: the sensed_cutoff_m calls are the simulator's, one per step)."""
         bp = self.preset.backstop
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
         margin = self._SENSED_POS_MARGIN_M + bp.plan_mismatch_s * self._SENSED_VEL_MARGIN_M_S
         states = np.asarray(states, dtype=float)
         hint = np.arange(states.shape[0]) if states.shape[0] == self.plan.N else None      # vehicle j <-> particle j
+        k = self.plan.k
+        if bp.plan_mismatch_brake_m_s2 > 0:
+            # kept for the braking test (_unplanned_by_braking): the previous sample of a vehicle no row was
+            # delivered at that step
+            self._cutoff_hist = {kk: x for kk, x in self._cutoff_hist.items() if kk == k - 1}
+            self._cutoff_hist[k] = states.copy()
+            a_plan = self._plan_acc(k)
         if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
             return None
+        if bp.plan_mismatch_brake_m_s2 > 0:
+            # the braking test on the same states against their state at the previous step, without the observer's own
+            # deviation (it only removes flags); margin: the quantisation of two velocity samples
+            prev = self._cutoff_hist.get(k - 1)
+            if k >= 1 and (hint is None or prev is None or a_plan is None or prev.shape != states.shape):
+                return None
+            if k >= 1:
+                dt = self.preset.dt_s
+                a_marg = 2.0 * self._SENSED_VEL_MARGIN_M_S / dt
+                m2 = margin + (0.5 * dt * dt + bp.plan_mismatch_s * dt) * a_marg
+                beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m - m2, hint[rows])
+                if np.any(braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg, beyond)):
+                    return None
         reach = super().sensed_cutoff_m(states)
         tp = self.preset.tracking
         if reach is not None and tp.feedback and tp.relative_priority and np.isfinite(self.plan.spacing_m):
@@ -362,6 +433,76 @@ class DefaultMFGController(_DefaultBase):
                 return self._beyond_plan(q[first], self.preset.backstop.plan_mismatch_m, ids[first])[inv]
             return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m, ids)
         return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m)
+
+    def _plan_acc(self, step: int) -> np.ndarray | None:
+        """(N, 2) each plan particle's acceleration over the step before ``step`` (its velocity change / dt), None if
+        the plan is not at ``step`` or its velocities at step - 1 were not recorded (records the current ones)."""
+        if self.plan.k != step:
+            return None
+        v = self._plan_v_hist.get(step)
+        if v is None:
+            v = self.plan.states[:, 2:4].copy()
+            self._plan_v_hist = {k: x for k, x in self._plan_v_hist.items() if k == step - 1}
+            self._plan_v_hist[step] = v
+        prev = self._plan_v_hist.get(step - 1)
+        return None if prev is None else (v - prev) / self.preset.dt_s
+
+    def _particles_of(self, ids: np.ndarray) -> np.ndarray:
+        """(m,) the plan particle of each vehicle id (the t = 0 exchange's order), -1 for an id it did not hold."""
+        sid, spart = self._plan_ids
+        at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
+        return np.where(sid[at] == ids, spart[at], -1)
+
+    def _unplanned_by_braking(self, sn: Neighbours, step: int, unplanned: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """(m,) bool: sensed vehicles that brake against their own plan particle by more than plan_mismatch_brake_m_s2
+        and would be beyond plan_mismatch_m after one more period of it (braking_off_plan), for the rows that sense no
+        vehicle off the plan yet (unplanned (m,): the entries already off it). The test is for the onset of a failure:
+        around a vehicle that is off the plan, the UAVs that escape it brake and swerve on purpose (measured: with the
+        test on every row, dense N = 1000, vehicle 10 failing at 20 s, seed 4: the escapes flagged the neighbours, whose
+        escapes flagged theirs: 98 collided pairs instead of 2). The previous sample of a vehicle is what this bank
+        sensed of it at step - 1, or, in the simulator, which delivers only the sensed vehicles within
+        sensed_cutoff_m's reach, the full observed state passed to sensed_cutoff_m then. Records this step's sensed
+        velocities."""
+        bp = self.preset.backstop
+        m = sn.states.shape[0]
+        out = np.zeros(m, dtype=bool)
+        if bp.plan_mismatch_brake_m_s2 <= 0 or self.plan is None or self._plan_ids is None:
+            return out
+        a_plan = self._plan_acc(step)
+        own_prev, self._own_v_prev = self._own_v_prev, (step, np.array(own[:, 2:4], dtype=float))
+        if sn.ids is None or m == 0:
+            return out
+        N = self.plan.N
+        if self._seen_v is None:
+            self._seen_v, self._seen_k = np.zeros((N, 2)), np.full(N, -1, dtype=np.int64)
+        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
+        ok = part >= 0
+        if a_plan is not None and step >= 1:
+            quiet = np.ones(self.n, dtype=bool)
+            quiet[sn.owner[unplanned]] = False          # rows that sense a vehicle off the plan already
+            cand = ok & quiet[sn.owner] & ~unplanned
+            v_prev = np.full((m, 2), np.nan)
+            pk = np.where(ok, part, 0)
+            have = cand & (self._seen_k[pk] == step - 1)
+            v_prev[have] = self._seen_v[pk[have]]
+            full = self._cutoff_hist.get(step - 1)
+            if full is not None and full.shape[0] == N:
+                miss = cand & ~have
+                v_prev[miss] = full[pk[miss], 2:4]
+                have |= miss
+            idx = np.flatnonzero(have)
+            if idx.size:
+                beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m, part[idx[rows]])
+                a_own = None
+                if own_prev is not None and own_prev[0] == step - 1:
+                    # the own deviation's acceleration: a gust brakes the observer as it brakes its neighbours
+                    oi = self.own_index[sn.owner[idx]]
+                    a_own = (own[sn.owner[idx], 2:4] - own_prev[1][sn.owner[idx]]) / self.preset.dt_s - a_plan[oi]
+                out[idx] = braking_off_plan(np.asarray(sn.states[idx], dtype=float), v_prev[idx], a_plan[part[idx]],
+                                            self.preset.dt_s, bp.plan_mismatch_brake_m_s2, beyond, a_own)
+        self._seen_v[part[ok]] = sn.states[ok, 2:4]
+        self._seen_k[part[ok]] = step
+        return out
 
     def _formation_error(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
         """(e_bar (n, 4), count (n,)): the mean deviation from the plan, s - s_plan, over the own vehicle and the

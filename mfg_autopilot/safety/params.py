@@ -27,6 +27,13 @@ class BackstopParams:
     # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
     plan_mismatch_m: float = 0.5
     plan_mismatch_s: float = 0.5    # velocity weight of that distance (a hovering vehicle in a moving plan stands out)
+    # MFG only: a sensed vehicle that brakes (its sensed velocity change since the previous control step, along its
+    # velocity) harder than its own plan particle by more than this - and harder than the observing UAV's own deviation
+    # brakes it (common mode: a head wind) - is also unplanned if one more period of it takes it beyond plan_mismatch_m
+    # (Hold brakes at ~2 m/s^2: seen one control period earlier; calm flight: below -1.3 m/s^2 in ~0.1 % of the
+    # (vehicle, step) pairs, -1.89 at worst); only for rows that sense no vehicle off the plan already (UAVs escaping a
+    # failed one brake and swerve too); 0 turns the test off. docs/default_controller.md, "The backstop"
+    plan_mismatch_brake_m_s2: float = 1.75
     own_slot_claim: bool = True     # MFG: a sensed vehicle within min(plan_mismatch_m, spacing / 2) of the own particle is unplanned ...
     own_slot_claim_max_speed_m_s: float = 0.5   # ... while that particle is this slow (parked: before its start, after its arrival)
     planned_response_rigid: bool = False   # MFG: also the response to planned vehicles when the plan is rigid (conflict-free by construction)
@@ -45,7 +52,7 @@ class BackstopParams:
     escape_threat_weight: float = 1.0      # weight of a conflict with a threat in the escape cost
     escape_planned_weight: float = 1.0     # ... and with a planned vehicle
     escape_effort: float = 1.0         # weight of |a - a_nom|^2 / a_max^2 (minimal intervention)
-    escape_lateral_cost: float = 1.0   # lateral (to the own velocity) deviations cost this x more than along-track
+    escape_lateral_cost: float = 1.5   # lateral (to the own velocity) deviations cost this x more than along-track (1.0 before: docs/default_controller.md, "Failed vehicle in a stream")
     escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
     escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
     escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)

@@ -1,0 +1,130 @@
+"""The backstop's braking test (BackstopParams.plan_mismatch_brake_m_s2, guidance.controller.braking_off_plan):
+a vehicle that fails into Hold and brakes in a moving plan is 'unplanned' at the first control step after the
+failure, before its state alone is plan_mismatch_m off the plan; a gust-like push, a lateral swerve and a vehicle
+braking back towards its particle are not flagged."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mfg_autopilot.guidance.controller import DefaultMFGController, braking_off_plan
+from mfg_autopilot.interface import Neighbours, Observation
+from mfg_autopilot.presets import preset_by_name
+
+DEFAULT = preset_by_name("default")
+BP = DEFAULT.backstop
+DT = DEFAULT.dt_s
+
+# a stream: 20 particles 0.5 m apart along x, all at 4 m/s along x (the dense formation's spacing and cruise speed)
+PLAN = np.array([[0.5 * i, 0.0, 4.0, 0.0] for i in range(20)])
+
+
+def _beyond(q: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Farther than plan_mismatch_m from every particle of PLAN, in the backstop's plan metric."""
+    w = np.array([1.0, 1.0, BP.plan_mismatch_s, BP.plan_mismatch_s])
+    d = np.linalg.norm((q[:, None, :] - PLAN[None, :, :]) * w, axis=2).min(axis=1)
+    return d > BP.plan_mismatch_m
+
+
+def _plan_distance(q: np.ndarray) -> float:
+    w = np.array([1.0, 1.0, BP.plan_mismatch_s, BP.plan_mismatch_s])
+    return float(np.linalg.norm((q[None, :] - PLAN) * w, axis=1).min())
+
+
+def _after(dev_r: float, dev_v: float, acc_dev: float, j: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Vehicle j's state one control period after being (dev_r, dev_v) along x off its particle and then
+    accelerating by acc_dev against it (the plan does not accelerate), and its velocity one period before."""
+    v_prev = np.array([[4.0 + dev_v, 0.0]])
+    r = PLAN[j, 0] + dev_r + (4.0 + dev_v) * DT + 0.5 * acc_dev * DT * DT - 4.0 * DT   # the plan's state one period on
+    q = np.array([[r, 0.0, 4.0 + dev_v + acc_dev * DT, 0.0]])
+    return q, v_prev
+
+
+def test_a_vehicle_braking_in_hold_is_flagged_at_the_first_step_while_its_state_is_still_near_the_plan():
+    # given a vehicle 0.2 m/s faster than its particle (as measured: crossing N = 1000, seed 4) that fails into Hold
+    # and brakes at 2 m/s^2 for one control period
+    q, v_prev = _after(0.0, 0.2, -2.0)
+    # then its state is still within plan_mismatch_m of the plan (the old test sees it one period later)
+    assert _plan_distance(q[0]) < BP.plan_mismatch_m
+    # but the braking test flags it now
+    assert braking_off_plan(q, v_prev, np.zeros((1, 2)), DT, BP.plan_mismatch_brake_m_s2, _beyond).tolist() == [True]
+
+
+def test_a_gust_like_push_a_swerve_and_a_recovery_are_not_flagged():
+    a_plan = np.zeros((1, 2))
+    # a head-wind gust of 1.5 m/s^2 (the largest of the simulated gust, 1 m/s^2 +- 50 %) on a vehicle on its particle
+    q, v_prev = _after(0.0, 0.0, -1.5)
+    assert not braking_off_plan(q, v_prev, a_plan, DT, BP.plan_mismatch_brake_m_s2, _beyond).any()
+    # a full-authority lateral swerve (2 m/s^2 across the track: an escape, or a cross-wind): not braking
+    v_prev = np.array([[4.0, 0.0]])
+    q = np.array([[PLAN[10, 0], 0.25, 4.0, 1.0]])
+    assert not braking_off_plan(q, v_prev, a_plan, DT, BP.plan_mismatch_brake_m_s2, _beyond).any()
+    # a vehicle that was blown 0.3 m ahead at +1.6 m/s and brakes at 2 m/s^2 back towards its particle
+    q, v_prev = _after(0.3 - (1.6 * DT - 0.25), 1.6, -2.0)
+    assert not braking_off_plan(q, v_prev, a_plan, DT, BP.plan_mismatch_brake_m_s2, _beyond).any()
+    # a head wind of 2 m/s^2 that brakes the observer as much (common mode: its own a_dev, known onboard), and one
+    # that brakes the observer 0.5 m/s^2 less (the gust's spread between neighbours)
+    q, v_prev = _after(0.0, 0.2, -2.0)
+    for a_own in (-2.0, -0.5):
+        assert not braking_off_plan(q, v_prev, a_plan, DT, BP.plan_mismatch_brake_m_s2, _beyond,
+                                    np.array([[a_own, 0.0]])).any()
+    assert braking_off_plan(q, v_prev, a_plan, DT, BP.plan_mismatch_brake_m_s2, _beyond, np.array([[0.1, 0.0]])).all()
+    # the same braking as in Hold, but no harder than the plan's own (the plan brakes too: at its arrival)
+    q, v_prev = _after(0.0, 0.2, -2.0)
+    assert not braking_off_plan(q, v_prev, np.array([[-2.0, 0.0]]), DT, BP.plan_mismatch_brake_m_s2, _beyond).any()
+
+
+def _stream_controller() -> DefaultMFGController:
+    """A bank of the 9 vehicles of a 3 x 3 block (0.5 m apart) whose plan takes them 200 m along x."""
+    pos = np.array([[0.5 * i, 0.5 * j] for i in range(3) for j in range(3)], dtype=float)
+    s0 = np.concatenate([pos, np.zeros_like(pos)], axis=1)
+    sites = pos + np.array([200.0, 0.0])
+    c = DefaultMFGController(DEFAULT, sites)
+    c.exchange_t0(s0, np.arange(9), np.arange(9), sites)
+    return c
+
+
+OTHERS = np.arange(1, 9)      # what row 0 (vehicle 0) senses
+
+
+def _sensed(states: np.ndarray) -> Neighbours:
+    return Neighbours(states[OTHERS], np.zeros(OTHERS.size, dtype=np.int64), OTHERS.copy())
+
+
+def _fly_on_plan_to_cruise(c: DefaultMFGController) -> int:
+    """Every vehicle exactly on its particle, step by step (the simulator's calls), until the plan cruises (> 3.95 m/s)."""
+    while True:
+        k = c.plan.k
+        x = c.plan.states.copy()
+        c.sensed_cutoff_m(x)
+        assert not c._unplanned_by_braking(_sensed(x), k, np.zeros(OTHERS.size, dtype=bool), x).any()
+        if np.linalg.norm(x[4, 2:4]) > 3.95:
+            return k
+        c.plan.advance()
+
+
+def test_the_controller_flags_a_braking_vehicle_one_step_after_its_failure_and_asks_for_every_sensed_vehicle():
+    # given the bank in cruise, every vehicle on its particle: the simulator may cut the sensed set
+    c = _stream_controller()
+    k = _fly_on_plan_to_cruise(c)
+    x = c.plan.states.copy()
+    c.plan.advance()
+    nxt = c.plan.states.copy()
+    assert c.sensed_cutoff_m(nxt.copy()) is not None
+    # when vehicle 5, 0.1 m ahead of its particle, brakes at 1.85 m/s^2 along its velocity for one control period
+    # while the plan moves on
+    v = x[5, 2:4]
+    brake = -1.85 * v / np.linalg.norm(v)
+    nxt[5, 0:2] = x[5, 0:2] + 0.1 * v / np.linalg.norm(v) + v * DT + 0.5 * brake * DT * DT
+    nxt[5, 2:4] = v + brake * DT
+    # then the simulator is asked for the whole sensor range, and the backstop flags it (only it)
+    assert c.sensed_cutoff_m(nxt) is None
+    none_off = np.zeros(OTHERS.size, dtype=bool)
+    assert c._unplanned(nxt[OTHERS], OTHERS).tolist() == [False] * OTHERS.size     # the state test: not yet
+    assert c._unplanned_by_braking(_sensed(nxt), k + 1, none_off, c.plan.states).tolist() == (OTHERS == 5).tolist()
+    # and a row that already senses a vehicle off the plan does not apply the test (UAVs escaping it brake too)
+    c2 = _stream_controller()
+    assert _fly_on_plan_to_cruise(c2) == k
+    c2.plan.advance()
+    off = OTHERS == 1
+    assert not c2._unplanned_by_braking(_sensed(nxt), k + 1, off, c2.plan.states).any()
