@@ -39,7 +39,7 @@ from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
 from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
-from mfg_autopilot.safety.kernels import formation_sums
+from mfg_autopilot.safety.kernels import braking_scan, formation_sums
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
 
@@ -476,32 +476,22 @@ class DefaultMFGController(_DefaultBase):
         if self._seen_v is None:
             self._seen_v, self._seen_k = np.zeros((N, 2)), np.full(N, -1, dtype=np.int64)
         part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
-        ok = part >= 0
-        if a_plan is not None and step >= 1:
-            quiet = np.ones(self.n, dtype=bool)
-            quiet[sn.owner[unplanned]] = False          # rows that sense a vehicle off the plan already
-            cand = ok & quiet[sn.owner] & ~unplanned
-            v_prev = np.full((m, 2), np.nan)
-            pk = np.where(ok, part, 0)
-            have = cand & (self._seen_k[pk] == step - 1)
-            v_prev[have] = self._seen_v[pk[have]]
-            full = self._cutoff_hist.get(step - 1)
-            if full is not None and full.shape[0] == N:
-                miss = cand & ~have
-                v_prev[miss] = full[pk[miss], 2:4]
-                have |= miss
-            idx = np.flatnonzero(have)
-            if idx.size:
-                beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m, part[idx[rows]])
-                a_own = None
-                if own_prev is not None and own_prev[0] == step - 1:
-                    # the own deviation's acceleration: a gust brakes the observer as it brakes its neighbours
-                    oi = self.own_index[sn.owner[idx]]
-                    a_own = (own[sn.owner[idx], 2:4] - own_prev[1][sn.owner[idx]]) / self.preset.dt_s - a_plan[oi]
-                out[idx] = braking_off_plan(np.asarray(sn.states[idx], dtype=float), v_prev[idx], a_plan[part[idx]],
-                                            self.preset.dt_s, bp.plan_mismatch_brake_m_s2, beyond, a_own)
-        self._seen_v[part[ok]] = sn.states[ok, 2:4]
-        self._seen_k[part[ok]] = step
+        # one compiled pass over the entries (safety.kernels.braking_scan: braking_off_plan's numbers), then the plan
+        # distance of the few that brake
+        do_test = a_plan is not None and step >= 1
+        full = self._cutoff_hist.get(step - 1)
+        has_full = full is not None and full.shape[0] == N
+        has_own = own_prev is not None and own_prev[0] == step - 1
+        idx, shifted = braking_scan(_kernel_arg(sn.owner, np.int64), _kernel_arg(part, np.int64), _kernel_arg(sn.states, np.float64),
+                                    _kernel_arg(unplanned, np.bool_), self.n, self._seen_v, self._seen_k,
+                                    _kernel_arg(full if has_full else np.zeros((0, 4)), np.float64), has_full,
+                                    _kernel_arg(a_plan if do_test else np.zeros((0, 2)), np.float64), do_test,
+                                    _kernel_arg(own, np.float64),
+                                    _kernel_arg(own_prev[1] if has_own else np.zeros((0, 2)), np.float64), has_own,
+                                    _kernel_arg(self.own_index, np.int64), int(step), float(self.preset.dt_s),
+                                    float(bp.plan_mismatch_brake_m_s2))
+        if idx.size:
+            out[idx] = self._beyond_plan(shifted, bp.plan_mismatch_m, part[idx])
         return out
 
     def _formation_error(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:

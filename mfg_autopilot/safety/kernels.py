@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
-           "formation_sums"]
+           "formation_sums", "braking_scan"]
 
 
 @njit(cache=True)
@@ -725,3 +725,64 @@ def formation_sums(owner, ids, states, own_states, own_err, sid, spart, plan_sta
         for c in range(4):
             sums[i, c] += states[k, c] - plan_states[j, c]
     return sums, cnt
+
+
+@njit(cache=True)
+def braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, full, has_full, a_plan, do_test, own, own_prev,
+                 has_own_prev, own_index, step, dt, brake_min):
+    """The per-entry part of the MFG braking test (guidance.controller.DefaultMFGController._unplanned_by_braking and
+    braking_off_plan) in one pass, with the same floating-point operations in the same order.
+
+    Entries e (m sensed (row, vehicle) pairs: owner, plan particle part (-1: not in the plan), states (m, 4),
+    unplanned (m,)): a candidate is an entry on the plan whose row senses no unplanned vehicle yet, with a previous
+    velocity sample - seen_v[part] if seen_k[part] == step - 1, else full[part, 2:4] when has_full. Its deviation
+    acceleration a_dev = (v - v_prev) / dt - a_plan[part] brakes along v_prev by more than brake_min (and, when
+    has_own_prev, by more than brake_min relative to the observing row's own a_dev, from own and own_prev). Returns
+    (entries (k,), their states shifted by one more period of a_dev (k, 4)); then records every planned entry's
+    velocity as seen at ``step`` (seen_v, seen_k updated in place). do_test False: only the recording."""
+    m = owner.shape[0]
+    idx = np.empty(m, dtype=np.int64)
+    sh = np.empty((m, 4))
+    k = 0
+    if do_test:
+        quiet = np.ones(n, dtype=np.bool_)
+        for e in range(m):
+            if unplanned[e]:
+                quiet[owner[e]] = False
+        c2 = 0.5 * dt * dt
+        for e in range(m):
+            p = part[e]
+            if p < 0 or unplanned[e] or not quiet[owner[e]]:
+                continue
+            if seen_k[p] == step - 1:
+                vp0, vp1 = seen_v[p, 0], seen_v[p, 1]
+            elif has_full:
+                vp0, vp1 = full[p, 2], full[p, 3]
+            else:
+                continue
+            ad0 = (states[e, 2] - vp0) / dt - a_plan[p, 0]
+            ad1 = (states[e, 3] - vp1) / dt - a_plan[p, 1]
+            speed = math.sqrt(vp0 * vp0 + vp1 * vp1)
+            den = max(speed, 1e-9)
+            if not ((ad0 * vp0 + ad1 * vp1) / den < -brake_min and speed > brake_min * dt):
+                continue
+            if has_own_prev:
+                o = owner[e]
+                oi = own_index[o]
+                r0 = ad0 - ((own[o, 2] - own_prev[o, 0]) / dt - a_plan[oi, 0])
+                r1 = ad1 - ((own[o, 3] - own_prev[o, 1]) / dt - a_plan[oi, 1])
+                if not ((r0 * vp0 + r1 * vp1) / den < -brake_min):
+                    continue
+            idx[k] = e
+            sh[k, 0] = states[e, 0] + c2 * ad0
+            sh[k, 1] = states[e, 1] + c2 * ad1
+            sh[k, 2] = states[e, 2] + dt * ad0
+            sh[k, 3] = states[e, 3] + dt * ad1
+            k += 1
+    for e in range(m):
+        p = part[e]
+        if p >= 0:
+            seen_v[p, 0] = states[e, 2]
+            seen_v[p, 1] = states[e, 3]
+            seen_k[p] = step
+    return idx[:k].copy(), sh[:k].copy()
