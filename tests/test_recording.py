@@ -124,7 +124,9 @@ def test_backstop_interventions_are_events_whose_steps_add_up_to_the_metric(tmp_
     assert m["backstop_activations"] > 0
     steps = [int({p.key: p.value for p in e.metadata}["steps"]) for _, e in msgs["/events/backstop"]]
     assert sum(steps) == m["backstop_activations"]
-    assert "/events/collision" not in msgs and m["collision_pairs"] == 0
+    # HJB_0.3 is no safe controller (with dense starting at rest it collides once here): whatever it does, the
+    # recording has one collision event per collided pair of the metric
+    assert len(msgs.get("/events/collision", [])) == m["collision_pairs"]
 
 
 def test_sim_without_record_writes_no_mcap(tmp_path):
