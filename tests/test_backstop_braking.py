@@ -6,6 +6,7 @@ braking back towards its particle are not flagged."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mfg_autopilot.guidance.controller import DefaultMFGController, braking_off_plan
 from mfg_autopilot.interface import Neighbours, Observation
@@ -128,3 +129,39 @@ def test_the_controller_flags_a_braking_vehicle_one_step_after_its_failure_and_a
     c2.plan.advance()
     off = OTHERS == 1
     assert not c2._unplanned_by_braking(_sensed(nxt), k + 1, off, c2.plan.states).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_compiled_braking_scan_flags_what_braking_off_plan_flags(seed):
+    # random sensed entries (some braking hard, some not, some off the plan, some unknown ids), with and without the
+    # observer's own deviation: the kernel's candidates and shifted states are braking_off_plan's, bit for bit
+    from mfg_autopilot.safety.kernels import braking_scan
+    rng = np.random.default_rng(seed)
+    n, N, m, dt = 7, 40, 200, 0.5
+    owner = np.sort(rng.integers(0, n, m)).astype(np.int64)
+    part = rng.integers(-1, N, m).astype(np.int64)
+    v_prev_all = rng.normal(scale=3.0, size=(N, 2))
+    states = np.concatenate([rng.normal(size=(m, 2)), v_prev_all[np.maximum(part, 0)] + rng.normal(scale=1.2, size=(m, 2))], axis=1)
+    unplanned = rng.uniform(size=m) < 0.03
+    a_plan = rng.normal(scale=0.3, size=(N, 2))
+    own = rng.normal(size=(n, 4))
+    own_prev = own[:, 2:4] - rng.normal(scale=0.2, size=(n, 2))
+    own_index = rng.integers(0, N, n).astype(np.int64)
+    for has_own in (False, True):
+        seen_v, seen_k = v_prev_all.copy(), np.full(N, 4, dtype=np.int64)
+        idx, shifted = braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, np.zeros((0, 4)), False, a_plan, True,
+                                    own, own_prev, has_own, own_index, 5, dt, 1.75)
+        quiet = np.ones(n, dtype=bool)
+        quiet[owner[unplanned]] = False
+        cand = np.flatnonzero((part >= 0) & ~unplanned & quiet[owner])
+        a_own = None
+        if has_own:
+            a_own = (own[owner[cand], 2:4] - own_prev[owner[cand]]) / dt - a_plan[own_index[owner[cand]]]
+        got = {}
+        braking_off_plan(states[cand], v_prev_all[part[cand]], a_plan[part[cand]], dt, 1.75,
+                         lambda q, rows: got.update(rows=rows, q=q) or np.zeros(rows.size, dtype=bool), a_own)
+        assert idx.size > 0
+        np.testing.assert_array_equal(idx, cand[got["rows"]])
+        np.testing.assert_array_equal(shifted, got["q"])
+        # the planned entries' velocities are recorded as seen at this step
+        assert np.all(seen_k[part[part >= 0]] == 5)
