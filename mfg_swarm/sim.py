@@ -12,8 +12,8 @@ One loop per control step t_k = k dt:
 
 Fault events (``SimConfig``):
 - ``fail_vehicle`` K, ``fail_at_s`` T: from the first control instant t_k >= T, vehicle K
-  stops following its controller and holds where it is (PX4 Hold:
-  ``mock_vehicle.plant.hold_acc_m_s2`` towards its position at t_k). It still broadcasts
+  stops following its controller and holds (PX4 Hold: ``mock_vehicle.plant.hold_acc_m_s2`` towards
+  the braking stop ahead of its state at t_k, ``braking_stop_m``, as PX4's navigator sets it). It still broadcasts
   (HJB_d hears it) and is still seen by proximity sensors.
 - ``gust`` (:class:`GustParams`): an extra acceleration on every vehicle during a time
   window, beyond the modelled wind noise V_o (the controllers' model does not contain it).
@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from mfg_autopilot.interface import HeardSummary, Neighbours, Observation
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.presets import MODES, make_controller
-from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
+from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, braking_stop_m, hold_acc_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals, separation_guarantee
@@ -271,7 +271,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:
             K = cfg.fail_vehicle
             if hold_pos is None:
-                hold_pos = obs[K:K + 1, 0:2].copy()
+                hold_pos = braking_stop_m(obs[K:K + 1])     # PX4's loiter point: the braking stop ahead
             acc_cmd[K] = hold_acc_m_s2(obs[K:K + 1], hold_pos, plant.params.acc_limit_m_s2)[0]
         acc_log[k] = plant.step(acc_cmd, dt)
         if cfg.gust is not None:

@@ -40,6 +40,8 @@ from mavlink_bridge import (
     SetMode,
 )
 
+from .plant import braking_stop_m
+
 __all__ = ["LifecycleMixin", "vertical_step", "HOLD_LIKE", "GRAVITY_M_S2"]
 
 log = logging.getLogger("mock_vehicle")
@@ -193,7 +195,12 @@ class LifecycleMixin:
                 self.flying = True
             self._last_sp_sim_s = self.sim_time_s()
         elif (mode in HOLD_LIKE or mode == PX4_LAND) and not keep_targets:
-            self.hold_pos_m = self.state[0:2].copy()
+            if mode == PX4_HOLD and not self.landed:
+                # PX4 (multicopter): the loiter point is the braking stop ahead, not the position the hold began at
+                # (navigator's calculate_breaking_stop: "otherwise the vehicle will overshoot and go back")
+                self.hold_pos_m = braking_stop_m(self.plant.states, self.params["MPC_ACC_HOR"], self.params["MPC_JERK_AUTO"])[0]
+            else:
+                self.hold_pos_m = self.state[0:2].copy()
             self.z_target_m = self.z_m
         self._vert_wall_s = self.wall_s()
         self._send_heartbeat()

@@ -23,6 +23,7 @@ from mavlink_bridge import (
     acceleration_setpoint,
 )
 from mock_vehicle.params import PARAM_SPECS, ParamTable
+from mock_vehicle.plant import WindParams
 from mock_vehicle.vehicle import MockVehicle, VehicleConfig, check_setpoint
 
 
@@ -130,6 +131,32 @@ def test_failsafe_after_com_of_loss_t_and_hold_keeps_position():
         clock.t += 0.1
         v.tick()
     assert np.linalg.norm(v.state[0:2] - hold_at) < 3.0 and np.all(np.isfinite(v.state))
+
+
+def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
+    # given a vehicle flying north at ~4 m/s in OFFBOARD (no wind noise: the along-track motion is the hold's alone)
+    calm = WindParams(mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
+    v, clock, sent = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
+    v.handle(cmd(400, 1))
+    stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
+    v.handle(cmd(176, 1, 6))
+    stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
+    x0, vx0 = float(v.state[0]), float(v.state[2])
+    assert v.mode == PX4_OFFBOARD and vx0 > 3.0
+    # when it is switched to Hold (MAV_CMD_DO_SET_MODE, AUTO.LOITER)
+    v.handle(cmd(176, 1, 4, 3))
+    assert v.mode == PX4_HOLD
+    # then the hold point is PX4's braking stop ahead (Navigator::calculate_breaking_stop with MPC_ACC_HOR = 3 m/s^2,
+    # MPC_JERK_AUTO = 4 m/s^3: |v| (|v| / 6 + 0.6) along the course), not the position where the hold began ...
+    assert v.hold_pos_m[0] - x0 == pytest.approx(vx0 * (vx0 / 6.0 + 0.6), rel=1e-6)
+    assert abs(v.hold_pos_m[1] - v.state[1]) < 1e-6
+    # ... and the vehicle brakes to it without overshooting and flying back against its former course
+    xs = []
+    for _ in range(300):
+        clock.t += 0.1
+        v.tick()
+        xs.append(float(v.state[0]))
+    assert np.all(np.diff(xs) >= -1e-3) and abs(xs[-1] - v.hold_pos_m[0]) < 0.3, (max(xs), xs[-1], v.hold_pos_m)
 
 
 def test_frozen_until_first_offboard():
