@@ -141,3 +141,60 @@ def test_half_turn_families_fly_without_collision(tmp_path, name, n, seed, extra
     assert m["collision_pairs"] == 0
     assert (m.get("arrived_fraction_others") or m["arrived_fraction"]) == 1.0
     assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"] or "--fail-vehicle" in extra or "--gust" in extra
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(n=st.integers(2, 400), spacing=st.floats(0.3, 2.0), cruise=st.floats(0.0, 3.0), dist=st.floats(5.0, 400.0),
+       bearing=st.floats(0.0, 2 * np.pi))
+def test_property_the_translation_spreads_in_cruise_as_a_similarity(n, spacing, cruise, dist, bearing):
+    """Given one group on a grid flying dist to its site with a cruise spacing, when the translation plan spreads:
+    then every pairwise distance only grows until the spread is complete and only shrinks after the plan starts closing,
+    never below its start value; the neighbours are max(1, min(cruise / spacing, what fits in the flight time)) x their
+    start distance apart in between; the plan ends on the slots at rest; and no particle accelerates by more than the
+    translation's and the spread's limits added (0.5 m/s^2 each)."""
+    pos = make_scenario("paper", n, 0).initial_pos_m
+    pos = (pos - pos.mean(axis=0)) * (spacing / np.sqrt(2.0))
+    site = dist * np.array([np.cos(bearing), np.sin(bearing)])
+    plan = rigid_plan_for(np.concatenate([pos, np.zeros_like(pos)], axis=1), np.tile(site, (n, 1)), 0.5, COST, 4.0, 0.5,
+                          translation=True, cruise_spacing_m=cruise)
+    assert plan is not None and plan.kind == "translation"
+    i, j = np.triu_indices(n, 1)
+    d0 = np.linalg.norm(pos[i] - pos[j], axis=1)
+    lam_c = plan.cruise_scale
+    assert 1.0 <= lam_c <= max(1.0, cruise / spacing) + 1e-9
+    assert 2.0 * plan.T_spread <= plan.T + 1e-9
+    prev, t_prev = d0, 0.0
+    for t in np.arange(0.0, plan.T + 2.0, 0.25):
+        s, a = plan.at(t)
+        d = np.linalg.norm(s[i, 0:2] - s[j, 0:2], axis=1)
+        assert np.all(d >= d0 - 1e-9)
+        assert np.all(d <= lam_c * d0 * (1 + 1e-9))
+        if t <= plan.T_spread:
+            assert np.all(d >= prev - 1e-9)
+        elif t >= plan.T - plan.T_spread:
+            if t_prev >= plan.T - plan.T_spread:
+                assert np.all(d <= prev + 1e-9)
+        else:
+            np.testing.assert_allclose(d, lam_c * d0, rtol=1e-9)
+        assert np.max(np.linalg.norm(a, axis=1)) <= 1.0 + 1e-9
+        prev, t_prev = d, t
+    s_end, _ = plan.at(plan.T + 1.0)
+    np.testing.assert_allclose(s_end[:, 0:2], plan.slots_m, atol=1e-9)
+    np.testing.assert_allclose(s_end[:, 2:4], 0.0, atol=1e-12)
+
+
+def test_the_dense_pad_spreads_to_the_cruise_spacing_and_closes_before_the_site():
+    """dense N = 1,000 (0.5 m grid, 180 m flight): the plan reaches the default cruise spacing (1.4 m) between
+    neighbours and holds it through the middle of the flight (the gust window of --gust, 20-25 s, included)."""
+    from mfg_autopilot.guidance.params import DEFAULT
+    cruise = DEFAULT.cruise_spacing_m
+    assert cruise == pytest.approx(1.4)
+    sc = make_scenario("dense", 1000, 1)
+    S0 = np.concatenate([sc.initial_pos_m, np.zeros((1000, 2))], axis=1)
+    plan = rigid_plan_for(S0, sc.destination_m, 0.5, COST, 4.0, 0.5, translation=True, cruise_spacing_m=cruise)
+    assert plan.cruise_scale == pytest.approx(cruise / 0.5)
+    assert plan.T_spread < 20.0
+    for t, want in ((0.0, 0.5), (20.0, cruise), (25.0, cruise), (plan.T + 1.0, 0.5)):
+        s, _ = plan.at(t)
+        d, _ = cKDTree(s[:, :2]).query(s[:, :2], k=2)
+        assert d[:, 1].min() == pytest.approx(want, rel=1e-6), t

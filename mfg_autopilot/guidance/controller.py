@@ -287,7 +287,7 @@ class DefaultMFGController(_DefaultBase):
         self._seen_v, self._seen_k, self._own_v_prev = None, None, None
         self._plan_v_hist, self._cutoff_hist = {}, {}
         rigid = (rigid_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2,
-                                translation=p.rigid_translation)
+                                translation=p.rigid_translation, cruise_spacing_m=p.cruise_spacing_m)
                  if p.rigid_plan and p.use_slots else None)
         if rigid is None and p.group_plan and p.use_slots:
             rigid = group_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2,
@@ -367,7 +367,8 @@ class DefaultMFGController(_DefaultBase):
         if reach is not None and tp.feedback and tp.relative_priority and np.isfinite(self.plan.spacing_m):
             # _formation_error's neighbours: plan particles within the formation radius, and every vehicle is within
             # plan_mismatch_m of the plan here (margin: the quantisation and that distance)
-            reach = (max(reach[0], tp.formation_radius_spacings * self.plan.spacing_m + 2.0 * bp.plan_mismatch_m + margin), reach[1])
+            sp_max = getattr(self.plan, "spacing_max_m", self.plan.spacing_m)
+            reach = (max(reach[0], tp.formation_radius_spacings * sp_max + 2.0 * bp.plan_mismatch_m + margin), reach[1])
         return reach
 
     _BRUTE_MAX_PAIRS = 4096     # _beyond_plan: up to this many (state, particle) pairs by brute force, not the k-d tree
@@ -505,7 +506,8 @@ class DefaultMFGController(_DefaultBase):
         if sn.states.shape[0] == 0 or sn.ids is None or self._plan_ids is None or not np.isfinite(self.plan.spacing_m):
             return e.copy(), cnt
         sid, spart = self._plan_ids
-        r_max = self.preset.tracking.formation_radius_spacings * self.plan.spacing_m
+        # the plan's spacing now: a translation spread in cruise holds its neighbours farther apart than at the start
+        r_max = self.preset.tracking.formation_radius_spacings * getattr(self.plan, "spacing_now_m", self.plan.spacing_m)
         # a sensed vehicle whose plan particle is near the own particle is near the own vehicle too (both track them):
         # the sensed positions pre-select, with the own deviation and twice the outlier bound as margin, before the
         # ids are looked up (the sensor delivers many more vehicles than the formation radius holds). A neighbour off

@@ -107,6 +107,8 @@ class DefaultPreset(Preset):
                                     # (guidance/group_plan.py); if no schedule is found, the interacting plan
     group_plan_clearance_fraction: float = 0.75   # ... certified to keep other groups' particles this x the start/slot spacing apart
     rigid_translation: bool = True  # MFG: a single group's plan is its rigid translation to the site (False: the interacting plan)
+    cruise_spacing_m: float = 1.4   # ... which spreads about its centroid in cruise until neighbours are this far apart, and
+                                    # closes again before the site (a similarity: every distance only grows, then returns; 0: off)
     use_slots: bool = True          # destination as a site with one slot per UAV
     use_repulsion: bool = True
 

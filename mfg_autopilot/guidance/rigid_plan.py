@@ -68,6 +68,15 @@ def _duration(distance: float, v_max: float, a_max: float) -> float:
     return 2.0 * v / a_max + (distance - v * v / a_max) / v
 
 
+def _distance_within(duration_s: float, v_max: float, a_max: float) -> float:
+    """The longest rest-to-rest move (``trapezoid``) that takes at most duration_s: the inverse of _duration."""
+    if duration_s <= 0.0:
+        return 0.0
+    if duration_s <= 2.0 * v_max / a_max:                  # triangular: d = a (T/2)^2
+        return a_max * (0.5 * duration_s) ** 2
+    return v_max * (duration_s - v_max / a_max)            # cruise at v_max: T = d / v + v / a
+
+
 class TimedPlan:
     """What a plan given in closed form of time shares (``RigidPlan``, ``group_plan.GroupPlan``): the common offset
     w(t) of the swarm's mean start velocity, the state at step k (computed once per step), the command and the step
@@ -125,7 +134,7 @@ class RigidPlan(TimedPlan):
 
     def __init__(self, S0: np.ndarray, sites_m: np.ndarray, group: np.ndarray, slots_m: np.ndarray, kind: str,
                  centre_m: np.ndarray, dt_s: float, cost: CostParams, v_max_m_s: float, a_kin_max_m_s2: float,
-                 wind_tau_s: float = 4.0) -> None:
+                 wind_tau_s: float = 4.0, cruise_spacing_m: float = 0.0, spread_v_max_m_s: float = 1.5) -> None:
         self.N = S0.shape[0]
         self.kind = kind
         self.r0 = S0[:, 0:2].copy()
@@ -150,9 +159,49 @@ class RigidPlan(TimedPlan):
             self.u = d / self.dist if self.dist > 0 else np.zeros(2)
             self.v_max, self.a_max = v_max_m_s, a_kin_max_m_s2
             self.T = _duration(self.dist, v_max_m_s, a_kin_max_m_s2)
+            self._init_spread(cruise_spacing_m, spread_v_max_m_s, a_kin_max_m_s2)
         self.k = 0
         self.rep_active = np.zeros(self.N, dtype=bool)
         self._cache: dict[int, np.ndarray] | None = None     # TimedPlan._states_at_step
+
+    def _init_spread(self, cruise_spacing_m: float, v_max: float, a_max: float) -> None:
+        """The translation's spread (module docstring, "Spread in cruise"): the scale lambda(t) = 1 + e(t) / rho about
+        the centroid (rho: the farthest particle's distance from it), e a rest-to-rest move of D = (lambda_c - 1) rho
+        out (v_max, a_max at that particle) from t = 0 and the same move back ending at T; lambda_c =
+        cruise_spacing_m / spacing, lowered until both moves fit in T (1: no spread)."""
+        self.cen0 = self.r0.mean(axis=0) if self.N else np.zeros(2)
+        rho = float(np.max(np.linalg.norm(self.r0 - self.cen0[None, :], axis=1))) if self.N else 0.0
+        want = max(0.0, cruise_spacing_m / self.spacing_m - 1.0) * rho if np.isfinite(self.spacing_m) and self.spacing_m > 0 else 0.0
+        D = min(want, _distance_within(0.5 * self.T, v_max, a_max))
+        if not (rho > 0.0 and D > 1e-9):
+            D = 0.0
+        self.spread_rho_m, self.spread_D_m = rho, D
+        self.spread_v_max, self.spread_a_max = v_max, a_max
+        self.T_spread = _duration(D, v_max, a_max)
+        self.cruise_scale = 1.0 + D / rho if D > 0.0 else 1.0
+
+    @property
+    def spacing_now_m(self) -> float:
+        """The particles' smallest distance at step k: the start/slot spacing times the spread's scale (translation)."""
+        return self.spacing_m * (1.0 + self._scale(self.k * self.dt_s)[0])
+
+    @property
+    def spacing_max_m(self) -> float:
+        """The largest spacing_now_m over the plan (the cruise spacing reached, or the start spacing)."""
+        return self.spacing_m * getattr(self, "cruise_scale", 1.0)
+
+    def _scale(self, t: float) -> tuple[float, float, float]:
+        """(lambda - 1, its rate, its acceleration) at time t (translation plans; 0 without a spread)."""
+        D = getattr(self, "spread_D_m", 0.0)
+        if D <= 0.0:
+            return 0.0, 0.0, 0.0
+        if t <= 0.5 * self.T:                              # the move out is over by T_spread <= T / 2 (to rounding)
+            e, ed, edd = trapezoid(D, self.spread_v_max, self.spread_a_max, t)
+        else:
+            e, ed, edd = trapezoid(D, self.spread_v_max, self.spread_a_max, t - (self.T - self.T_spread))
+            e, ed, edd = D - e, -ed, -edd
+        r = self.spread_rho_m
+        return e / r, ed / r, edd / r
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Every particle's state (N, 4) and kinematic acceleration (N, 2) at time t."""
@@ -171,11 +220,18 @@ class RigidPlan(TimedPlan):
             pos = self.r0 + (s * self.u + w)[None, :]
             vel = np.broadcast_to(sd * self.u + wd, (self.N, 2)).copy()
             acc = np.broadcast_to(sdd * self.u + wdd, (self.N, 2)).copy()
+            lam, lam_d, lam_dd = self._scale(t)
+            if lam_d != 0.0 or lam != 0.0 or lam_dd != 0.0:
+                d = self.r0 - self.cen0[None, :]
+                pos += lam * d
+                vel += lam_d * d
+                acc += lam_dd * d
         return np.concatenate([pos, vel], axis=1), acc
 
 
 def rigid_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostParams, v_max_m_s: float,
-                   a_kin_max_m_s2: float, rel_tol: float = 1e-9, translation: bool = False) -> RigidPlan | None:
+                   a_kin_max_m_s2: float, rel_tol: float = 1e-9, translation: bool = False,
+                   cruise_spacing_m: float = 0.0) -> RigidPlan | None:
     """The rigid plan of the t = 0 exchange if the target layout is an isometry of the start layout
     (module docstring), else None. S0 (N, 4), sites_m (N, 2). A single group (a translation) gets one
     only with ``translation``: the default controller keeps its interacting plan there, which measured
@@ -198,7 +254,8 @@ def rigid_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
         if not translation:
             return None
         slots = sites + r0 - cen[group]
-        return RigidPlan(S0, sites, group, slots, "translation", site_g[0], dt_s, cost, v_max_m_s, a_kin_max_m_s2)
+        return RigidPlan(S0, sites, group, slots, "translation", site_g[0], dt_s, cost, v_max_m_s, a_kin_max_m_s2,
+                         cruise_spacing_m=cruise_spacing_m)
     two_c = site_g + cen
     if np.max(np.abs(two_c - two_c[0][None, :])) <= rel_tol * scale * 1e3:
         c = 0.5 * two_c[0]
