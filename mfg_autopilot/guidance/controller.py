@@ -367,8 +367,10 @@ class DefaultMFGController(_DefaultBase):
         if reach is not None and tp.feedback and tp.relative_priority and np.isfinite(self.plan.spacing_m):
             # _formation_error's neighbours: plan particles within the formation radius, and every vehicle is within
             # plan_mismatch_m of the plan here (margin: the quantisation and that distance)
-            sp_max = getattr(self.plan, "spacing_max_m", self.plan.spacing_m)
-            reach = (max(reach[0], tp.formation_radius_spacings * sp_max + 2.0 * bp.plan_mismatch_m + margin), reach[1])
+            # (the spacing now: a translation spread in cruise is farther apart than at the start, and the pad's
+            # spacing keeps the reach short where the vehicles are dense)
+            sp = getattr(self.plan, "spacing_reach_m", self.plan.spacing_m)
+            reach = (max(reach[0], tp.formation_radius_spacings * sp + 2.0 * bp.plan_mismatch_m + margin), reach[1])
         return reach
 
     _BRUTE_MAX_PAIRS = 4096     # _beyond_plan: up to this many (state, particle) pairs by brute force, not the k-d tree

@@ -186,6 +186,12 @@ class RigidPlan(TimedPlan):
         return self.spacing_m * (1.0 + self._scale(self.k * self.dt_s)[0])
 
     @property
+    def spacing_reach_m(self) -> float:
+        """The larger of spacing_now_m at step k and at step k + 1 (a caller between two steps sees either)."""
+        lam = max(self._scale(self.k * self.dt_s)[0], self._scale((self.k + 1) * self.dt_s)[0])
+        return self.spacing_m * (1.0 + lam)
+
+    @property
     def spacing_max_m(self) -> float:
         """The largest spacing_now_m over the plan (the cruise spacing reached, or the start spacing)."""
         return self.spacing_m * getattr(self, "cruise_scale", 1.0)
