@@ -184,7 +184,8 @@ class LifecycleMixin:
         return MavResult.ACCEPTED
 
     def _set_mode(self, mode: Px4Mode, reason: str, keep_targets: bool = False) -> None:
-        """Enter ``mode``. Hold, Position and Land keep the horizontal position where they begin (and
+        """Enter ``mode``. Hold holds at PX4's braking stop ahead (``plant.braking_stop_m``; where it begins when
+        landed), Position and Land keep the horizontal position where they begin (and
         Hold its altitude) unless ``keep_targets`` (AUTO.LOITER after a takeoff keeps the takeoff's)."""
         if mode == self.mode:
             return

@@ -23,7 +23,7 @@ for the rest). Signing what the vehicle sends is the port's job (``MavlinkPort``
 
 Dynamics (air start, the default): frozen at the initial state until the first OFFBOARD entry
 (the vehicle hovers at its slot); then OFFBOARD integrates the held setpoint, every other mode PX4
-Hold (``hold_acc_m_s2`` around where it began). A setpoint PX4's position controller refuses
+Hold (``hold_acc_m_s2`` around PX4's braking stop ahead of where it began, ``plant.braking_stop_m``). A setpoint PX4's position controller refuses
 (``setpoint.classify_setpoint``: an axis without a term, x/y not in pairs, a NaN in a used field)
 keeps OFFBOARD but flies PX4's "stop and wait" (velocity 0). Ground start (``start_on_ground``) and
 the altitude loop: ``lifecycle``. Own EKF origin (``origin``): ``telemetry`` and ``geo``.
