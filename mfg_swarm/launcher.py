@@ -128,20 +128,6 @@ def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, t
     raise LaunchError(f"no block of {span} free loopback ports in {lo}..{hi}: give --mavlink-base-port")
 
 
-def _free_ports(kind: int, n: int) -> list[int]:
-    """n loopback ports of a kind, free a moment ago (the OS picks them: ephemeral range)."""
-    socks = []
-    try:
-        for _ in range(n):
-            s_ = socket.socket(socket.AF_INET, kind)
-            s_.bind(("127.0.0.1", 0))
-            socks.append(s_)
-        return [s_.getsockname()[1] for s_ in socks]
-    finally:
-        for s_ in socks:
-            s_.close()
-
-
 def _check_ports_free(kind: int, ports: list[int], what: str) -> None:
     for p in ports:
         with socket.socket(socket.AF_INET, kind) as s:
@@ -424,7 +410,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     wind = plant_params_for(preset, cfg.physics_dt_s).wind
     # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
     sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
-    world_port = _free_ports(socket.SOCK_DGRAM, 1)[0] if sensor_range_m is not None else None
+    world_port = _free_port_block(1, 0)[0][0] if sensor_range_m is not None else None
     world: list[_Child] = []
     children: list[_Child] = []
     router: list[_Child] = []

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -22,25 +23,36 @@ VENV_BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parent.parent
 
 
+# Ports for the test's processes are chosen below Linux's ephemeral range (32768-60999), as mfg_swarm.launcher does:
+# a port the OS picked with bind(0) and then released can be handed out again as the source port of another socket (a
+# mock vehicle's udpout, a Zenoh connection) before the process under test binds it (seen once in CI: "[Errno 98]
+# Address already in use" for a controller's udpin). Ports outside that range are never handed out implicitly.
+_PORT_LO, _PORT_HI = 20000, 32000
+_port_rng = random.Random(os.getpid() ^ time.time_ns())
+
+
 def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that was free a moment ago (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A UDP port on 127.0.0.1, free a moment ago and outside the OS's ephemeral range."""
+    return free_udp_ports(1)[0]
 
 
-def free_udp_ports(n: int) -> list[int]:
-    """``n`` distinct free UDP ports (held open together while picking)."""
-    socks = []
-    try:
-        for _ in range(n):
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s.bind(("127.0.0.1", 0))
-            socks.append(s)
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
+def free_udp_ports(n: int, kind: int = socket.SOCK_DGRAM) -> list[int]:
+    """``n`` distinct ports of ``kind`` on 127.0.0.1, free at once (held open together while picking), below the
+    ephemeral range."""
+    for _ in range(500):
+        socks = []
+        try:
+            for p in _port_rng.sample(range(_PORT_LO, _PORT_HI), n):
+                s = socket.socket(socket.AF_INET, kind)
+                socks.append(s)
+                s.bind(("127.0.0.1", p))
+            return [s.getsockname()[1] for s in socks]
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError(f"no {n} free loopback ports in {_PORT_LO}..{_PORT_HI}")
 
 
 def wait_until(predicate: Callable[[], object], timeout_s: float, what: str, poll_s: float = 0.05):

@@ -20,9 +20,7 @@ pytestmark = pytest.mark.e2e
 
 def _free_tcp_port() -> int:
     import socket
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_udp_ports(1, socket.SOCK_STREAM)[0]      # below the ephemeral range (tests/_net.py)
 
 
 def _autopilot(url, *extra, n=1, instance=0):

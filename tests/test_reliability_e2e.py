@@ -19,14 +19,7 @@ TELEMETRY_PERIOD_S = 1.0 / 30
 
 
 def _tcp_ports(n):
-    socks = [socket.socket() for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
+    return free_udp_ports(n, socket.SOCK_STREAM)      # below the ephemeral range (tests/_net.py)
 
 
 def _recs(path):
