@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-__all__ = ["free_udp_port", "free_udp_ports", "Proc", "spawn", "wait_until", "mock_vehicle_cmd", "running_mock_vehicle", "MockVehicleProc", "PYTHON", "VENV_BIN"]
+__all__ = ["free_udp_port", "free_udp_ports", "free_tcp_ports", "free_ports", "Proc", "spawn", "wait_until", "mock_vehicle_cmd", "running_mock_vehicle", "MockVehicleProc", "PYTHON", "VENV_BIN"]
 
 PYTHON = sys.executable
 VENV_BIN = Path(sys.executable).parent
@@ -33,12 +33,22 @@ _port_rng = random.Random(os.getpid() ^ time.time_ns())
 
 def free_udp_port() -> int:
     """A UDP port on 127.0.0.1, free a moment ago and outside the OS's ephemeral range."""
-    return free_udp_ports(1)[0]
+    return free_ports(1, socket.SOCK_DGRAM)[0]
 
 
-def free_udp_ports(n: int, kind: int = socket.SOCK_DGRAM) -> list[int]:
-    """``n`` distinct ports of ``kind`` on 127.0.0.1, free at once (held open together while picking), below the
-    ephemeral range."""
+def free_udp_ports(n: int) -> list[int]:
+    """``n`` distinct UDP ports on 127.0.0.1 (``free_ports``)."""
+    return free_ports(n, socket.SOCK_DGRAM)
+
+
+def free_tcp_ports(n: int) -> list[int]:
+    """``n`` distinct TCP ports on 127.0.0.1 (``free_ports``)."""
+    return free_ports(n, socket.SOCK_STREAM)
+
+
+def free_ports(n: int, kind: int) -> list[int]:
+    """``n`` distinct ports of socket type ``kind`` on 127.0.0.1, free at once (held open together while picking),
+    below the ephemeral range."""
     for _ in range(500):
         socks = []
         try:

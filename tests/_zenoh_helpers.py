@@ -30,10 +30,10 @@ HELPER = Path(__file__).resolve()
 
 def free_tcp_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago, below the OS's ephemeral range (tests/_net.py
-    free_udp_ports: an ephemeral port can be handed out as another connection's source port before the listener binds)."""
-    from _net import free_udp_ports
+    free_ports: an ephemeral port can be handed out as another connection's source port before the listener binds)."""
+    from _net import free_tcp_ports
 
-    return free_udp_ports(1, socket.SOCK_STREAM)[0]
+    return free_tcp_ports(1)[0]
 
 
 def ep(port: int, host: str = "127.0.0.1") -> str:

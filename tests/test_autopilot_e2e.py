@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from _net import PYTHON, VENV_BIN, free_udp_port, free_udp_ports, spawn, wait_until
+from _net import PYTHON, VENV_BIN, free_tcp_ports, free_udp_port, free_udp_ports, spawn, wait_until
 
 from mavlink_bridge import LocalPositionNed, SetPositionTargetLocalNed, read_tlog
 from mfg_autopilot.presets import preset_by_name
@@ -19,8 +19,7 @@ pytestmark = pytest.mark.e2e
 
 
 def _free_tcp_port() -> int:
-    import socket
-    return free_udp_ports(1, socket.SOCK_STREAM)[0]      # below the ephemeral range (tests/_net.py)
+    return free_tcp_ports(1)[0]      # below the ephemeral range (tests/_net.py)
 
 
 def _autopilot(url, *extra, n=1, instance=0):

@@ -4,11 +4,10 @@ flies on undisturbed (issue 10)."""
 
 import json
 import signal
-import socket
 import time
 
 import pytest
-from _net import PYTHON, free_udp_ports, spawn, wait_until
+from _net import PYTHON, free_tcp_ports, free_udp_ports, spawn, wait_until
 
 from mavlink_bridge import SetPositionTargetLocalNed, StatusText, read_tlog
 
@@ -19,7 +18,7 @@ TELEMETRY_PERIOD_S = 1.0 / 30
 
 
 def _tcp_ports(n):
-    return free_udp_ports(n, socket.SOCK_STREAM)      # below the ephemeral range (tests/_net.py)
+    return free_tcp_ports(n)      # below the ephemeral range (tests/_net.py)
 
 
 def _recs(path):

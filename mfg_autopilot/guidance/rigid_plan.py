@@ -144,6 +144,7 @@ class RigidPlan(TimedPlan):
         self.c = np.asarray(centre_m, dtype=float)
         self.dt_s, self.cost = float(dt_s), cost
         self.v0 = S0[:, 2:4].mean(axis=0) if self.N else np.zeros(2)
+        self.spread_D_m, self.T_spread, self.cruise_scale = 0.0, 0.0, 1.0      # no spread (a translation may set one)
         self.tau = float(wind_tau_s)
 
         if kind == "turn":
@@ -191,14 +192,9 @@ class RigidPlan(TimedPlan):
         lam = max(self._scale(self.k * self.dt_s)[0], self._scale((self.k + 1) * self.dt_s)[0])
         return self.spacing_m * (1.0 + lam)
 
-    @property
-    def spacing_max_m(self) -> float:
-        """The largest spacing_now_m over the plan (the cruise spacing reached, or the start spacing)."""
-        return self.spacing_m * getattr(self, "cruise_scale", 1.0)
-
     def _scale(self, t: float) -> tuple[float, float, float]:
         """(lambda - 1, its rate, its acceleration) at time t (translation plans; 0 without a spread)."""
-        D = getattr(self, "spread_D_m", 0.0)
+        D = self.spread_D_m
         if D <= 0.0:
             return 0.0, 0.0, 0.0
         if t <= 0.5 * self.T:                              # the move out is over by T_spread <= T / 2 (to rounding)
