@@ -386,3 +386,62 @@ def test_escape_checks_the_approach_between_its_samples():
     assert act[0]
     assert _min_dist_const_acc(own[0], np.zeros(2), threat[0], dt_s=0.001) < 0.06
     assert _min_dist_const_acc(own[0], a[0], threat[0], dt_s=0.001) > 0.15
+
+
+def _controller_in_cruise(scenario, n, k0, preset=DEFAULT, seed=0):
+    """An MFG controller bank after the t = 0 exchange, its plan flown to step k0 (no vehicle acts)."""
+    sc = make_scenario(scenario, n)
+    S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=seed).states)
+    ids = np.arange(sc.n)
+    c = make_controller("mfg", preset, sc.destination_m)
+    c.exchange_t0(S0, ids, ids, sc.destination_m)
+    for _ in range(k0):
+        c.plan.advance()
+    return c
+
+
+def test_an_off_plan_vehicle_moving_with_the_flow_gets_the_small_escape_reach_a_stopped_one_the_large():
+    # given the crossing plan in cruise (4 m/s, 1.41 m apart) and three off-plan vehicles: one blown 0.7 m sideways
+    # and 0.5 m/s off the flow (a gust), one stopped on its particle's place (failed in Hold), one that moves at the
+    # flow's speed but 2.5 m/s off its direction
+    c = _controller_in_cruise("crossing", 50, 40)
+    bp = DEFAULT.backstop
+    x = c.plan.states
+    v = x[5, 2:4]
+    assert np.linalg.norm(v) > 3.5                                      # in cruise (the test is meaningful)
+    side = np.array([-v[1], v[0]]) / np.linalg.norm(v)
+    blown = np.concatenate([x[5, 0:2] + 0.7 * side, v + 0.5 * side])
+    stopped = np.concatenate([x[6, 0:2], [0.0, 0.0]])
+    crossing = np.concatenate([x[7, 0:2] + 0.7 * side, v + 2.5 * side])
+    q = np.stack([blown, stopped, crossing])
+    assert c._unplanned(q).all()
+    trig, clear = c._unplanned_reach(q, np.ones(3, dtype=bool), 0.6, 0.8)
+    # then the blown one is escaped only when it comes within 0.25 m (it closes at the gust's relative speed), the
+    # others at the full 0.6 m with 0.8 m clearance
+    np.testing.assert_array_equal(trig, [bp.unplanned_flow_trigger_m, 0.6, 0.6])
+    np.testing.assert_array_equal(clear, [bp.unplanned_flow_target_m, 0.8, 0.8])
+    # where the plan itself is slow (parked before the start) every off-plan vehicle keeps the large reach
+    c0 = _controller_in_cruise("crossing", 50, 0)
+    x0 = c0.plan.states
+    q0 = np.concatenate([x0[5, 0:2] + [0.7, 0.0], x0[5, 2:4]])[None, :]
+    np.testing.assert_array_equal(c0._unplanned_reach(q0, np.ones(1, dtype=bool), 0.6, 0.8)[0], [0.6])
+    # and the rule off (unplanned_flow_m_s = 0) gives the large reach to all
+    off = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(bp, unplanned_flow_m_s=0.0))
+    c_off = _controller_in_cruise("crossing", 50, 40, preset=off)
+    np.testing.assert_array_equal(c_off._unplanned_reach(q, np.ones(3, dtype=bool), 0.6, 0.8)[0], [0.6, 0.6, 0.6])
+
+
+def test_a_vehicle_far_from_its_own_particle_is_unplanned_even_where_another_particle_passes_through_it():
+    # given the circle plan in its turn and vehicle 3 sensed exactly in the state of vehicle 20's particle (a failed
+    # vehicle that the stream left behind, on the path of vehicle 20): the nearest-particle test alone clears it
+    c = _controller_in_cruise("circle", 40, 40)
+    x = c.plan.states
+    assert np.linalg.norm(x[3, 0:2] - x[20, 0:2]) > DEFAULT.backstop.plan_lost_m        # far from its own particle
+    q = x[[20]].copy()
+    assert not c._off_plan(q).any()
+    # then, known by its id, it is unplanned; a vehicle within plan_lost_m of its own particle is judged as before
+    assert c._unplanned(q, np.array([3])).all()
+    assert not c._unplanned(q, np.array([20])).any()
+    assert not c._unplanned(q).any()                                    # no id: only the nearest-particle test
+    off = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0))
+    assert not _controller_in_cruise("circle", 40, 40, preset=off)._unplanned(q, np.array([3])).any()

@@ -152,10 +152,21 @@ class _DefaultBase:
         """(m,) bool: sensed vehicles the controller did not expect (HJB_d: none known)."""
         return np.zeros(sensed_states.shape[0], dtype=bool)
 
+    def _lost(self, states: np.ndarray, ids: np.ndarray | None) -> np.ndarray:
+        """(m,) bool: sensed vehicles lost to the plan (MFG; HJB_d: none known)."""
+        return np.zeros(states.shape[0], dtype=bool)
+
     def _unplanned_by_braking(self, sn: Neighbours, step: int, unplanned: np.ndarray, own: np.ndarray) -> np.ndarray:
         """(m,) bool: sensed vehicles flagged by their braking against the plan (MFG; HJB_d: none); unplanned (m,):
         the entries already off the plan; own (n, 4): the rows' own states."""
         return np.zeros(sn.states.shape[0], dtype=bool)
+
+    def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
+                         clear_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(m,) the escape's trigger and clearance per sensed entry (read where ``unplanned``): trig_m, clear_m for
+        every one (HJB_d; MFG narrows them for an off-plan vehicle that moves with the plan's flow)."""
+        m = states.shape[0]
+        return np.full(m, trig_m), np.full(m, clear_m)
 
     def _backstop(self, own: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
         bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
@@ -178,7 +189,8 @@ class _DefaultBase:
             ps = bp.plan_mismatch_s
             own_dev = np.linalg.norm(self._own_err * np.array([1.0, 1.0, ps, ps]), axis=1)
             idx = np.flatnonzero(unplanned & (own_dev[sn.owner] > bp.common_mode_min_own_dev_m))
-            unplanned[idx] = self._unplanned(sn.states[idx] - self._own_err[sn.owner[idx]])
+            unplanned[idx] = (self._unplanned(sn.states[idx] - self._own_err[sn.owner[idx]])
+                              | self._lost(sn.states[idx], None if sn.ids is None else sn.ids[idx]))
         plan = getattr(self, "plan", None)
         if plan is not None and sn.states.shape[0] and bp.own_slot_claim:
             # a sensed vehicle on the own particle's place is not on the plan whatever particle it is near: the own
@@ -208,6 +220,7 @@ class _DefaultBase:
             # the unplanned response's trigger and clearance, fitted to the slot spacing
             sp = self._spacing_m()
             u_trig, u_clear = min(bp.unplanned_trigger_m, 0.5 * sp), min(bp.unplanned_target_m, 0.6 * sp)
+            e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
             # the escape is a backstop for a few off-plan vehicles; a row that senses mostly off-plan vehicles (the
             # swarm has lost its plan) gets the single half-plane push instead (measured: with every UAV off the
             # plan, escaping from all neighbours at once swerved UAVs into each other in the 0.5 m formation)
@@ -223,9 +236,9 @@ class _DefaultBase:
             if np.any(threat):
                 # escape manoeuvre for the rows an unplanned vehicle threatens (backstop.escape_acc);
                 # the other rows keep the planned vehicles' half-plane response below
-                trig = np.where(threat, u_trig, np.where(gap, bp.trigger_m, 0.0))
+                trig = np.where(threat, e_trig, np.where(gap, bp.trigger_m, 0.0))
                 threat = threat | gap
-                clear = np.where(unplanned, u_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp))
+                clear = np.where(unplanned, e_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp))
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
                                         self.preset.dt_s)
             if np.any(push):
@@ -257,6 +270,7 @@ class DefaultMFGController(_DefaultBase):
         kernels.warm_up()                   # load the compiled kernels now, not in the first control step
         self.plan: MeanFieldPlan | RigidPlan | None = None
         self._plan_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its particles), _plan_distance
+        self._flow_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its positions), _unplanned_reach
         ps = p.backstop.plan_mismatch_s
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
@@ -282,7 +296,7 @@ class DefaultMFGController(_DefaultBase):
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
             order = np.argsort(ids, kind="stable")
             self._plan_ids = (ids[order], order)
-        self._plan_tree = None
+        self._plan_tree, self._flow_tree = None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev = None, None, None
         self._plan_v_hist, self._cutoff_hist = {}, {}
@@ -349,6 +363,12 @@ class DefaultMFGController(_DefaultBase):
             a_plan = self._plan_acc(k)
         if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
             return None
+        if bp.plan_lost_m > 0 and self._plan_ids is not None:
+            # _lost: by id; a row is delivered vehicle j under id j
+            part = self._particles_of(np.arange(states.shape[0]))
+            dr = states[part >= 0, 0:2] - self.plan.states[part[part >= 0], 0:2]
+            if np.any(dr[:, 0] ** 2 + dr[:, 1] ** 2 > (bp.plan_lost_m - margin) ** 2):
+                return None
         if bp.plan_mismatch_brake_m_s2 > 0:
             # the braking test on the same states against their state at the previous step, without the observer's own
             # deviation (it only removes flags); margin: the quantisation of two velocity samples
@@ -412,7 +432,27 @@ class DefaultMFGController(_DefaultBase):
     def _unplanned(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """Sensed vehicles farther than plan_mismatch_m from every plan particle, in the state
         metric |dr|^2 + (plan_mismatch_s |dv|)^2 (the plan -
-        the same on every UAV - says where everyone should be; no communication needed)."""
+        the same on every UAV - says where everyone should be; no communication needed), and those
+        lost to the plan (_lost)."""
+        return self._off_plan(sensed_states, ids) | self._lost(sensed_states, ids)
+
+    def _lost(self, states: np.ndarray, ids: np.ndarray | None) -> np.ndarray:
+        """(m,) bool: vehicles farther than ``plan_lost_m`` from their own plan particle (known by their id from the
+        t = 0 exchange): a failed vehicle holding where the stream has left it. Near *some* particle it still looks
+        on the plan where the plan passes through it (measured: circle N = 1,000, a vehicle in Hold on a UAV's path
+        into its slot, cleared as that UAV's own particle; the UAV flew into it, 0.025 m)."""
+        lost_m = self.preset.backstop.plan_lost_m
+        out = np.zeros(states.shape[0], dtype=bool)
+        if ids is None or lost_m <= 0 or self._plan_ids is None or states.shape[0] == 0 or len(ids) != states.shape[0]:
+            return out
+        part = self._particles_of(np.asarray(ids, dtype=np.int64))
+        known = part >= 0
+        dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
+        out[known] = dr[:, 0] ** 2 + dr[:, 1] ** 2 > lost_m * lost_m
+        return out
+
+    def _off_plan(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
+        """_unplanned's distance to the nearest particle (ids: only to query each vehicle once)."""
         if sensed_states.shape[0] == 0:
             return np.zeros(0, dtype=bool)
         q = sensed_states
@@ -436,6 +476,32 @@ class DefaultMFGController(_DefaultBase):
                 return self._beyond_plan(q[first], self.preset.backstop.plan_mismatch_m, ids[first])[inv]
             return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m, ids)
         return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m)
+
+    def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
+                         clear_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """The escape's trigger and clearance per sensed entry. An off-plan vehicle that still moves with the plan's
+        flow where it is (its velocity within ``unplanned_flow_m_s`` of the nearest particle's, where that particle
+        flies faster than ``unplanned_flow_min_m_s``: a UAV a gust blew off its particle in cruise) gets the smaller
+        ``unplanned_flow_trigger_m`` / ``unplanned_flow_target_m`` (at most trig_m / clear_m): it closes on its
+        neighbours only at the gust's relative speed, and the large reach made the escapes from such drifting
+        neighbours carry UAVs through the formation (crossing --gust). A vehicle stopped or hovering in a moving
+        plan, or off the plan where the plan itself is slow, keeps trig_m / clear_m."""
+        bp = self.preset.backstop
+        m = states.shape[0]
+        trig, clear = np.full(m, trig_m), np.full(m, clear_m)
+        idx = np.flatnonzero(unplanned)
+        if idx.size == 0 or bp.unplanned_flow_m_s <= 0 or self.plan is None:
+            return trig, clear
+        if self._flow_tree is None or self._flow_tree[0] != self.plan.k:
+            self._flow_tree = (self.plan.k, cKDTree(self.plan.states[:, 0:2]))
+        _, j = self._flow_tree[1].query(states[idx, 0:2], k=1)
+        vp = self.plan.states[j, 2:4]
+        dv = states[idx, 2:4] - vp
+        flow = ((vp[:, 0] ** 2 + vp[:, 1] ** 2 > bp.unplanned_flow_min_m_s ** 2)
+                & (dv[:, 0] ** 2 + dv[:, 1] ** 2 < bp.unplanned_flow_m_s ** 2))
+        trig[idx[flow]] = min(trig_m, bp.unplanned_flow_trigger_m)
+        clear[idx[flow]] = min(clear_m, bp.unplanned_flow_target_m)
+        return trig, clear
 
     def _plan_acc(self, step: int) -> np.ndarray | None:
         """(N, 2) each plan particle's acceleration over the step before ``step`` (its velocity change / dt), None if

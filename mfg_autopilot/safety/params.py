@@ -27,6 +27,9 @@ class BackstopParams:
     # plan (failed, gust-blown, unknown) and gets the 'unplanned' response below
     plan_mismatch_m: float = 0.5
     plan_mismatch_s: float = 0.5    # velocity weight of that distance (a hovering vehicle in a moving plan stands out)
+    # MFG only: ... and a sensed vehicle farther than this from its own particle (by its id; a failed vehicle the stream
+    # has left) is unplanned too, even where some particle passes through it; 0 turns it off
+    plan_lost_m: float = 10.0
     # MFG only: a sensed vehicle that brakes (its sensed velocity change since the previous control step, along its
     # velocity) harder than its own plan particle by more than this - and harder than the observing UAV's own deviation
     # brakes it (common mode: a head wind) - is also unplanned if one more period of it takes it beyond plan_mismatch_m
@@ -39,6 +42,13 @@ class BackstopParams:
     planned_response_rigid: bool = False   # MFG: also the response to planned vehicles when the plan is rigid (conflict-free by construction)
     unplanned_trigger_m: float = 0.6   # used: min(this, 0.5 * smallest slot spacing)
     unplanned_target_m: float = 0.8    # used: min(this, 0.6 * smallest slot spacing)
+    # MFG: ... but an unplanned vehicle moving with the plan's flow (velocity within unplanned_flow_m_s of the nearest
+    # particle's, that particle faster than unplanned_flow_min_m_s: blown off its particle in cruise) gets these
+    # (at most the two above); 0 turns it off. docs/default_controller.md, "The escape's reach follows the flow"
+    unplanned_flow_m_s: float = 2.0
+    unplanned_flow_min_m_s: float = 2.0
+    unplanned_flow_trigger_m: float = 0.25
+    unplanned_flow_target_m: float = 0.5
     unplanned_share: float = 1.0
     common_mode: bool = True           # MFG: a vehicle off the plan by the own deviation (a shared gust) is not unplanned
     common_mode_min_own_dev_m: float = 0.2   # ... checked only for rows this far off their own particle (same metric)
