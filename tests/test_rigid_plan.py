@@ -198,3 +198,22 @@ def test_the_dense_pad_spreads_to_the_cruise_spacing_and_closes_before_the_site(
         s, _ = plan.at(t)
         d, _ = cKDTree(s[:, :2]).query(s[:, :2], k=2)
         assert d[:, 1].min() == pytest.approx(want, rel=1e-6), t
+
+
+def test_the_dense_pad_at_ten_thousand_spreads_nearly_to_the_cruise_spacing_before_the_gust_window():
+    """dense N = 10,000 (0.5 m grid, 35 m from its centroid to its corners, 53 s of flight): at the spread's 1.5 m/s
+    the pad reached only 1.0 m, still growing through the --gust window (20-25 s), and flew that gust 0.21 m apart
+    (below half its start spacing). At 3 m/s at the farthest particle: >= 1.2 m at 20 s, 1.38 m from 26.5 s, the same
+    0.5 m/s^2; distances still only grow (a similarity) and the speed the spread adds stays within 3 m/s."""
+    from mfg_autopilot.guidance.params import DEFAULT
+    sc = make_scenario("dense", 10000, 1)
+    S0 = np.concatenate([sc.initial_pos_m, np.zeros((10000, 2))], axis=1)
+    plan = rigid_plan_for(S0, sc.destination_m, 0.5, COST, 4.0, 0.5, translation=True,
+                          cruise_spacing_m=DEFAULT.cruise_spacing_m)
+    assert plan.spacing_m * plan.cruise_scale >= 1.35
+    tree_min = lambda s: cKDTree(s[:, :2]).query(s[:, :2], k=2)[0][:, 1].min()     # noqa: E731
+    assert tree_min(plan.at(20.0)[0]) >= 1.2
+    assert tree_min(plan.at(25.0)[0]) >= 1.35
+    t = np.linspace(0.0, plan.T_spread, 60)
+    rate = np.array([plan._scale(x)[1] for x in t])
+    assert np.all(rate >= 0.0) and rate.max() * plan.spread_rho_m <= 3.0 + 1e-9

@@ -134,7 +134,7 @@ class RigidPlan(TimedPlan):
 
     def __init__(self, S0: np.ndarray, sites_m: np.ndarray, group: np.ndarray, slots_m: np.ndarray, kind: str,
                  centre_m: np.ndarray, dt_s: float, cost: CostParams, v_max_m_s: float, a_kin_max_m_s2: float,
-                 wind_tau_s: float = 4.0, cruise_spacing_m: float = 0.0, spread_v_max_m_s: float = 1.5) -> None:
+                 wind_tau_s: float = 4.0, cruise_spacing_m: float = 0.0, spread_v_max_m_s: float = 3.0) -> None:
         self.N = S0.shape[0]
         self.kind = kind
         self.r0 = S0[:, 0:2].copy()
@@ -166,7 +166,7 @@ class RigidPlan(TimedPlan):
         self._cache: dict[int, np.ndarray] | None = None     # TimedPlan._states_at_step
 
     def _init_spread(self, cruise_spacing_m: float, v_max: float, a_max: float) -> None:
-        """The translation's spread (module docstring, "Spread in cruise"): the scale lambda(t) = 1 + e(t) / rho about
+        """The translation's spread (docs/default_controller.md, "The pad spreads in cruise"): the scale lambda(t) = 1 + e(t) / rho about
         the centroid (rho: the farthest particle's distance from it), e a rest-to-rest move of D = (lambda_c - 1) rho
         out (v_max, a_max at that particle) from t = 0 and the same move back ending at T; lambda_c =
         cruise_spacing_m / spacing, lowered until both moves fit in T (1: no spread)."""
