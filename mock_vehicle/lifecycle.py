@@ -40,7 +40,7 @@ from mavlink_bridge import (
     SetMode,
 )
 
-from .plant import braking_stop_m
+from .plant import braking_stop_m, position_brake_path_m
 
 __all__ = ["LifecycleMixin", "vertical_step", "HOLD_LIKE", "GRAVITY_M_S2"]
 
@@ -52,6 +52,7 @@ FORCE_ARM_DISARM = 21196.0       # COMPONENT_ARM_DISARM param 2: force arming or
 VERTICAL_SUBSTEP_S = 0.05        # the altitude loop's Euler step: MPC_Z_VEL_P_ACC * h well below 1
 ACC_UP_MAX_M_S2 = GRAVITY_M_S2   # thrust limits around hover thrust 0.5 (MPC_THR_HOVER): MPC_THR_MAX 1.0 gives +1 g up,
 ACC_DOWN_MAX_M_S2 = 0.76 * GRAVITY_M_S2  # MPC_THR_MIN 0.12 at most 0.76 g down
+POSCTL_DT_S = 0.02               # PX4's flight task rate (50 Hz): the Position-mode braking path's step
 OBL_ACTIONS = {4: "Land"}        # COM_OBL_RC_ACT values the mock flies other than Hold (docs/mavlink.md)
 
 _Z_IGNORE, _VZ_IGNORE, _AZ_IGNORE = int(PositionTargetTypeMask.Z_IGNORE), int(PositionTargetTypeMask.VZ_IGNORE), int(PositionTargetTypeMask.AZ_IGNORE)
@@ -184,13 +185,15 @@ class LifecycleMixin:
         return MavResult.ACCEPTED
 
     def _set_mode(self, mode: Px4Mode, reason: str, keep_targets: bool = False) -> None:
-        """Enter ``mode``. Hold holds at PX4's braking stop ahead (``plant.braking_stop_m``; where it begins when
-        landed), Position and Land keep the horizontal position where they begin (and
-        Hold its altitude) unless ``keep_targets`` (AUTO.LOITER after a takeoff keeps the takeoff's)."""
+        """Enter ``mode``. Hold holds at PX4's braking stop ahead (``plant.braking_stop_m``), Position follows PX4's
+        braking velocity setpoint and holds where it stops (``plant.position_brake_path_m``), Land where it begins (PX4's land item has no
+        position: ``FlightTaskAuto`` locks the current one); landed, every mode holds where it is. Altitude: the
+        one where the mode begins, unless ``keep_targets`` (AUTO.LOITER after a takeoff keeps the takeoff's)."""
         if mode == self.mode:
             return
         log.info("mode %s -> %s (%s)", self.mode, mode, reason)
         self.mode = mode
+        self.posctl_path = None
         if mode == PX4_OFFBOARD:
             if not self.landed:
                 self.flying = True
@@ -200,6 +203,13 @@ class LifecycleMixin:
                 # PX4 (multicopter): the loiter point is the braking stop ahead, not the position the hold began at
                 # (navigator's calculate_breaking_stop: "otherwise the vehicle will overshoot and go back")
                 self.hold_pos_m = braking_stop_m(self.plant.states, self.params["MPC_ACC_HOR"], self.params["MPC_JERK_AUTO"])[0]
+            elif mode == PX4_POSCTL and not self.landed:
+                # PX4 Position mode, sticks centred: the vehicle follows a velocity setpoint braking from its current
+                # velocity, and the position locks where that reaches zero (StickAccelerationXY)
+                path = position_brake_path_m(self.plant.states[0], self.params["MPC_ACC_HOR"], self.params["MPC_VEL_MANUAL"],
+                                             POSCTL_DT_S)
+                self.posctl_path = (self.sim_time_s(), path[0], path[1])
+                self.hold_pos_m = path[0][-1].copy()      # until the lock (vehicle._current_acc_m_s2)
             else:
                 self.hold_pos_m = self.state[0:2].copy()
             self.z_target_m = self.z_m

@@ -188,6 +188,36 @@ def braking_stop_m(states: np.ndarray, acc_hor_m_s2: float = 3.0, jerk_auto_m_s3
     return states[:, 0:2] + dist[:, None] * unit
 
 
+def position_brake_path_m(state: np.ndarray, acc_hor_m_s2: float = 3.0, vel_manual_m_s: float = 10.0,
+                          dt_s: float = 0.02, max_s: float = 120.0) -> tuple[np.ndarray, np.ndarray]:
+    """The path of a multicopter entering Position mode with the sticks centred: (positions (K, 2), velocities (K, 2))
+    every dt_s from the entry state (4,); the last position is where PX4 locks it. PX4's
+    ``FlightTaskManualAcceleration`` starts its velocity setpoint at the current velocity and its brake boost at 1
+    (``activate``). ``StickAccelerationXY::generateSetpoints`` then brakes that setpoint with the drag
+    (2 MPC_ACC_HOR / MPC_VEL_MANUAL) b sqrt_linear(|v_sp|) along v_sp. The boost b is an ``AlphaFilter`` with a 0.8 s time
+    constant, driven to max(2, sqrt(MPC_VEL_MANUAL)) while the sticks are centred. A setpoint that the drag would
+    reverse within one step is set to zero, and ``lockPosition`` locks the position once it is. Integrated at PX4's
+    50 Hz task rate. Not modelled: the jerk-limited decay of the last commanded acceleration (MPC_JERK_MAX) and the
+    tilt limit (it binds only above ~5 m/s with the defaults). Defaults: PX4's 3 m/s^2 and 10 m/s."""
+    state = np.asarray(state, dtype=float).reshape(4)
+    p, v = state[0:2].copy(), state[2:4].copy()
+    k0 = 2.0 * acc_hor_m_s2 / vel_manual_m_s
+    target, alpha = max(2.0, math.sqrt(vel_manual_m_s)), dt_s / (0.8 + dt_s)
+    boost = 1.0
+    ps, vs = [p.copy()], [v.copy()]
+    for _ in range(int(max_s / dt_s)):
+        speed = float(np.linalg.norm(v))
+        if speed == 0.0:
+            break
+        boost += alpha * (target - boost)
+        drag = k0 * boost * (math.sqrt(speed) if speed < 1.0 else speed)     # math::sqrt_linear
+        v = np.zeros(2) if speed < drag * dt_s else v - drag * dt_s * v / speed
+        p = p + v * dt_s
+        ps.append(p.copy())
+        vs.append(v.copy())
+    return np.array(ps), np.array(vs)
+
+
 def hold_acc_m_s2(
     states: np.ndarray,
     hold_pos_m: np.ndarray,

@@ -44,6 +44,7 @@ from mavlink_bridge import (
     PX4_HOLD,
     PX4_LAND,
     PX4_OFFBOARD,
+    PX4_POSCTL,
     BadData,
     CommandAck,
     CommandInt,
@@ -69,9 +70,9 @@ from mavlink_bridge.adsb import TRAFFIC_MARKER_NAME
 from mavlink_bridge.ratelog import RejectLog
 
 from .geo import LocalFrame
-from .lifecycle import LifecycleMixin
+from .lifecycle import POSCTL_DT_S, LifecycleMixin
 from .params import ParamTable
-from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2
+from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, saturate_norm
 from .proximity import traffic_reports
 from .setpoint import SETPOINT_LIMITS, check_setpoint, classify_setpoint  # noqa: F401  (check_setpoint: re-exported)
 from .telemetry import FAST_TELEMETRY, TELEMETRY_IDS, TelemetryMixin
@@ -204,6 +205,7 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
         self.home = self._here()         # (lat, lon, alt, x, y, z local): set at boot and at arming, as PX4
         self._origin_sent = cfg.origin is None
         self.hold_pos_m = np.array(cfg.initial_pos_m, dtype=float)
+        self.posctl_path: tuple[float, np.ndarray, np.ndarray] | None = None    # Position mode: (t0, positions, velocities)
         self.setpoint: SetPositionTargetLocalNed | None = None
         self._setpoint_flyable = True    # False: PX4's position controller refuses the held setpoint (stop and wait)
         self.applied_acc_m_s2 = np.zeros(2)
@@ -430,6 +432,20 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
             if not self._setpoint_flyable:        # PX4's "stop and wait": velocity setpoint 0 (the PD's velocity gain)
                 return -2.0 * self.plant.states[:, 2:4]
             return self._setpoint_acc_m_s2().reshape(1, 2)
+        if self.mode == PX4_POSCTL and self.posctl_path is not None:
+            # Position mode: PX4's velocity controller follows the braking velocity setpoint (lifecycle,
+            # plant.position_brake_path_m) with its acceleration fed forward, within the airframe's limit; once the
+            # setpoint is zero the position locks where the vehicle is then (StickAccelerationXY::lockPosition), and a
+            # vehicle that lagged behind the setpoint flies back to it, as PX4's does
+            t0, _, vs = self.posctl_path
+            k = int((self.sim_time_s() - t0) / POSCTL_DT_S)
+            if k < vs.shape[0] - 1:
+                k = max(k, 0)
+                a_ref = (vs[k + 1] - vs[k]) / POSCTL_DT_S
+                acc = a_ref + 2.0 * (vs[k] - self.plant.states[0, 2:4])
+                return saturate_norm(acc.reshape(1, 2), self.plant.params.acc_limit_m_s2)
+            self.hold_pos_m = self.plant.states[0, 0:2].copy()
+            self.posctl_path = None
         return hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
 
     def _moving(self) -> bool:

@@ -9,6 +9,7 @@ import pytest
 
 from mavlink_bridge import (
     PX4_HOLD,
+    PX4_POSCTL,
     PX4_OFFBOARD,
     CommandAck,
     CommandLong,
@@ -157,6 +158,42 @@ def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
         v.tick()
         xs.append(float(v.state[0]))
     assert np.all(np.diff(xs) >= -1e-3) and abs(xs[-1] - v.hold_pos_m[0]) < 0.3, (max(xs), xs[-1], v.hold_pos_m)
+
+
+def test_position_mode_in_flight_locks_where_px4s_braking_setpoint_stops():
+    # given a vehicle flying north at ~4 m/s in OFFBOARD (no wind noise)
+    calm = WindParams(mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
+    v, clock, sent = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
+    v.handle(cmd(400, 1))
+    stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
+    v.handle(cmd(176, 1, 6))
+    stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
+    x0, vx0 = float(v.state[0]), float(v.state[2])
+    assert v.mode == PX4_OFFBOARD and vx0 > 3.0
+    # when it is switched to Position mode (MAV_CMD_DO_SET_MODE, POSCTL) with no stick input
+    v.handle(cmd(176, 1, 3))
+    assert v.mode == PX4_POSCTL
+    # then it brakes along PX4's velocity setpoint (drag 2 MPC_ACC_HOR / MPC_VEL_MANUAL = 0.6/s, boosted up to
+    # sqrt(10) by a 0.8 s filter) and locks where it is when that setpoint reaches zero: the setpoint alone stops
+    # between (v0 - 1) / k + 2 / (3 k) for k = 0.6 sqrt(10) (full boost) and k = 0.6 (none); the airframe's 2 m/s^2
+    # cannot follow the boosted drag, so the vehicle is still moving when the position locks and comes back to it
+    stop = lambda k: (vx0 - 1.0) / k + 2.0 / (3.0 * k)      # noqa: E731
+    path_end = float(v.hold_pos_m[0] - x0)
+    assert stop(0.6 * 10.0 ** 0.5) < path_end < stop(0.6), (path_end, stop(0.6 * 10.0 ** 0.5), stop(0.6))
+    xs, vxs = [], []
+    for _ in range(300):
+        clock.t += 0.1
+        v.tick()
+        xs.append(float(v.state[0]))
+        vxs.append(float(v.state[2]))
+    lock = float(v.hold_pos_m[0])
+    assert v.mode == PX4_POSCTL and v.posctl_path is None                  # locked
+    # ahead, not where the mode began: past the setpoint's stop (the vehicle brakes at most at 2 m/s^2), about where
+    # braking at the limit ends
+    assert x0 + path_end <= lock <= x0 + vx0 ** 2 / (2.0 * 2.0) + 0.5, (lock, x0, path_end)
+    assert abs(v.hold_pos_m[1] - v.state[1]) < 1e-6
+    assert np.all(np.diff(vxs[:10]) <= 1e-9)                                # it brakes at once
+    assert abs(xs[-1] - lock) < 0.05 and abs(vxs[-1]) < 0.05                # and holds the lock
 
 
 def test_frozen_until_first_offboard():
