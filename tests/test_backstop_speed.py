@@ -94,11 +94,17 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
     assert acted > 20
 
 
+# the reference is the backstop as it was before the lost-to-the-plan rule and the flow-relative escape reach (issue 18,
+# fifth session; their own tests are in tests/test_default_controller.py): compared with both off
+AS_REFERENCE = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
+                                                                         unplanned_flow_m_s=0.0))
+
+
 def _controller(scenario: str, n: int, rows: np.ndarray, seed: int):
     sc = make_scenario(scenario, n)
     S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=seed).states)
     ids = np.arange(sc.n)
-    c = make_controller("mfg", DEFAULT, sc.destination_m[rows])
+    c = make_controller("mfg", AS_REFERENCE, sc.destination_m[rows])
     c.exchange_t0(S0, ids, rows, sc.destination_m)
     return c
 
