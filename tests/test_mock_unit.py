@@ -134,16 +134,23 @@ def test_failsafe_after_com_of_loss_t_and_hold_keeps_position():
     assert np.linalg.norm(v.state[0:2] - hold_at) < 3.0 and np.all(np.isfinite(v.state))
 
 
-def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
-    # given a vehicle flying north at ~4 m/s in OFFBOARD (no wind noise: the along-track motion is the hold's alone)
+def _flying_north_in_offboard():
+    """A vehicle flying north at ~4 m/s in OFFBOARD with no wind noise (the along-track motion after a mode change is
+    that mode's alone): (vehicle, clock, north position, north velocity)."""
     calm = WindParams(mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
-    v, clock, sent = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
+    v, clock, _ = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
     v.handle(cmd(400, 1))
     stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
     v.handle(cmd(176, 1, 6))
     stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
     x0, vx0 = float(v.state[0]), float(v.state[2])
     assert v.mode == PX4_OFFBOARD and vx0 > 3.0
+    return v, clock, x0, vx0
+
+
+def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
+    # given a vehicle flying north at ~4 m/s in OFFBOARD
+    v, clock, x0, vx0 = _flying_north_in_offboard()
     # when it is switched to Hold (MAV_CMD_DO_SET_MODE, AUTO.LOITER)
     v.handle(cmd(176, 1, 4, 3))
     assert v.mode == PX4_HOLD
@@ -162,14 +169,7 @@ def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
 
 def test_position_mode_in_flight_locks_where_px4s_braking_setpoint_stops():
     # given a vehicle flying north at ~4 m/s in OFFBOARD (no wind noise)
-    calm = WindParams(mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
-    v, clock, sent = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
-    v.handle(cmd(400, 1))
-    stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
-    v.handle(cmd(176, 1, 6))
-    stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
-    x0, vx0 = float(v.state[0]), float(v.state[2])
-    assert v.mode == PX4_OFFBOARD and vx0 > 3.0
+    v, clock, x0, vx0 = _flying_north_in_offboard()
     # when it is switched to Position mode (MAV_CMD_DO_SET_MODE, POSCTL) with no stick input
     v.handle(cmd(176, 1, 3))
     assert v.mode == PX4_POSCTL
