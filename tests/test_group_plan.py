@@ -123,6 +123,15 @@ def test_property_every_random_layout_gets_a_certified_plan(n, seed):
     assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
     s_end, _ = plan.at(plan.T + 60.0)
     assert np.allclose(s_end[:, 0:2], plan.slots_m, atol=1e-6)
+    _assert_within_limits(plan)
+
+
+def _assert_within_limits(plan: GroupPlan, dt=0.05) -> None:
+    """Every group's centroid motion keeps the speed and acceleration limits (blended legs included), sampled."""
+    for g in range(plan.G):
+        for tau in np.arange(0.0, plan.dur_g[g] + dt, dt):
+            _, v, a = plan.group_motion(g, float(tau))
+            assert np.linalg.norm(v) <= V * (1 + 1e-9) and np.linalg.norm(a) <= A * (1 + 1e-9), (g, tau, v, a)
 
 
 @settings(max_examples=20, deadline=None, derandomize=True)
@@ -195,3 +204,21 @@ def test_bands_that_must_cross_each_other_slide_out_first():
     assert _brute_min_distance(plan) >= plan.clearance_m - 1e-6
     s_end, _ = plan.at(plan.T + 60.0)
     assert np.allclose(s_end[:, 0:2], plan.slots_m, atol=1e-6)
+
+
+def test_blended_legs_fly_a_routed_random_layout_sooner_and_everybody_arrives():
+    """random N = 1,000 seed 1: two groups flown one after another, routed around each other's parked places (10 and 7
+    legs). Stopping at every waypoint, the plan took 234.6 s: 400 control steps (200 s) left most UAVs short of their
+    slots. With the legs blended at their shallow turns it is certified as before, and it is shorter by over 20 %."""
+    sc = make_scenario("random", 1000, seed=1)
+    plan = group_plan_for(_rest(sc.initial_pos_m), sc.destination_m, 0.5, COST, V, A,
+                          clearance_fraction=DEFAULT.group_plan_clearance_fraction)
+    assert plan is not None and plan.blend and plan.route.startswith("routed")
+    assert plan.T < 0.8 * 234.6, plan.T
+    _assert_within_limits(plan, dt=0.25)
+    # flown by the default controller (its plan is this one, from the exchanged states), within 400 steps
+    from mfg_swarm.sim import SimConfig, simulate
+    m = simulate(SimConfig(scenario=sc, mode="mfg", preset=DEFAULT, seed=1, steps=400), progress=False)[1]
+    assert m["plan"]["plan"] == "groups" and m["plan"]["duration_s"] < 0.8 * 234.6
+    assert m["collision_pairs"] == 0 and m["arrived_fraction"] == 1.0
+    assert m["min_separation_m"] >= 0.5 * m["start_spacing_m"]

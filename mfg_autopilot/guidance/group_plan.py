@@ -72,6 +72,7 @@ class GroupPlan(TimedPlan):
         self.d_g = site_g - cen                          # each group's whole displacement (G, 2)
         self.v_max, self.a_max = float(v_max_m_s), float(a_kin_max_m_s2)
         self.pre_m, self.pre_s = np.zeros((self.G, 2)), 0.0
+        self.blend = False
         self.set_waypoints([np.zeros((0, 2))] * self.G)
         self.start_s = np.zeros(self.G) if start_s is None else np.asarray(start_s, dtype=float).reshape(self.G)
         self.T = float(np.max(self.start_s + self.dur_g)) if self.G else 0.0
@@ -86,12 +87,17 @@ class GroupPlan(TimedPlan):
         self.rep_active = np.zeros(self.N, dtype=bool)
         self._cache: dict[int, np.ndarray] | None = None     # TimedPlan._states_at_step
 
-    def set_waypoints(self, via_m: list[np.ndarray], prelude_m: np.ndarray | None = None) -> None:
+    def set_waypoints(self, via_m: list[np.ndarray], prelude_m: np.ndarray | None = None,
+                      blend: bool | None = None) -> None:
         """Each group's path: straight legs through its waypoints (offsets of its centroid from the start, (k, 2) each;
         none: one straight leg to the site), every leg a rest-to-rest trapezoid, flown back to back from the group's
         start time. ``prelude_m`` (G, 2): a first leg that every group flies *at once*, from t = 0, on one common time
         profile (each group's offset a fixed multiple of it), before any scheduled start: the schedule then starts at
-        ``pre_s``, its end (:func:`spread_slide_waypoints`)."""
+        ``pre_s``, its end (:func:`spread_slide_waypoints`). ``blend`` (kept if None): each leg starts while the one
+        before it brakes, where the path turns by at most 60 deg (:func:`_blend_overlap`): the group no longer stops at
+        such a waypoint and cuts its corner a little; speed and acceleration stay within v_max and a_max."""
+        if blend is not None:
+            self.blend = bool(blend)
         self.via_m = [np.asarray(v, dtype=float).reshape(-1, 2) for v in via_m]
         self.pre_m = np.zeros((self.G, 2)) if prelude_m is None else np.asarray(prelude_m, dtype=float).reshape(self.G, 2)
         self._pre_len = float(np.max(np.linalg.norm(self.pre_m, axis=1))) if self.G else 0.0
@@ -105,7 +111,14 @@ class GroupPlan(TimedPlan):
                 if length > 0.0:
                     legs.append((a, b - a, _duration(length, self.v_max, self.a_max)))
             self.legs.append(legs)
-        self.dur_g = np.array([sum(leg[2] for leg in legs) for legs in self.legs])
+        self.leg_t0: list[list[float]] = []      # per group: each leg's start time after the group's start
+        for legs in self.legs:
+            t0 = [0.0]
+            for prev, nxt in zip(legs[:-1], legs[1:]):
+                t0.append(t0[-1] + prev[2] - (_blend_overlap(prev, nxt, self.v_max, self.a_max) if self.blend else 0.0))
+            self.leg_t0.append(t0)
+        self.dur_g = np.array([sum(leg[2] for leg in legs) if not self.blend else (t0[-1] + legs[-1][2] if legs else 0.0)
+                               for legs, t0 in zip(self.legs, self.leg_t0)])
         if hasattr(self, "start_s"):
             self.start_s = np.maximum(self.start_s, self.pre_s)
             self.T = float(np.max(self.start_s + self.dur_g)) if self.G else 0.0
@@ -125,6 +138,24 @@ class GroupPlan(TimedPlan):
         zero = np.zeros(2)
         if tau <= 0.0 or not self.legs[g]:
             return (self.pre_m[g].copy() if tau <= 0.0 else self.d_g[g].copy()), zero, zero
+        if self.blend:
+            # the legs' rest-to-rest moves superposed from their start times (a leg ends its braking while the
+            # next one accelerates)
+            if tau >= self.dur_g[g]:
+                return self.d_g[g].copy(), zero, zero
+            off, vel, acc = self.legs[g][0][0].copy(), np.zeros(2), np.zeros(2)
+            for (_, vec, dur), t0 in zip(self.legs[g], self.leg_t0[g]):
+                t = tau - t0
+                if t <= 0.0:
+                    break
+                if t >= dur:
+                    off += vec
+                    continue
+                length = float(np.linalg.norm(vec))
+                sp, sv, sa = trapezoid(length, self.v_max, self.a_max, t)
+                u = vec / length
+                off, vel, acc = off + sp * u, vel + sv * u, acc + sa * u
+            return off, vel, acc
         for a, vec, dur in self.legs[g]:
             if tau < dur:
                 length = float(np.linalg.norm(vec))
@@ -160,6 +191,19 @@ class GroupPlan(TimedPlan):
         vel = gv[self.group] + wd[None, :]
         acc = ga[self.group] + wdd[None, :]
         return np.concatenate([pos, vel], axis=1), acc
+
+
+def _blend_overlap(leg_a: tuple, leg_b: tuple, v_max: float, a_max: float) -> float:
+    """How long leg_b may start before leg_a ends (GroupPlan.set_waypoints' ``blend``): leg_a's braking and leg_b's
+    acceleration phases overlap by at most the shorter of the two (the summed speed then never exceeds either leg's
+    top speed, so not v_max), and only where the path turns by at most 60 deg (the summed acceleration, a_max times
+    |u_b - u_a| = 2 a_max sin(turn / 2), then stays within a_max); 0 otherwise."""
+    (_, va, _), (_, vb, _) = leg_a, leg_b
+    la, lb = float(np.linalg.norm(va)), float(np.linalg.norm(vb))
+    if la <= 0.0 or lb <= 0.0 or float(va @ vb) < 0.5 * la * lb:
+        return 0.0
+    ramp = lambda length: min(v_max, math.sqrt(length * a_max)) / a_max      # noqa: E731  trapezoid's t_acc
+    return min(ramp(la), ramp(lb))
 
 
 def _pair_min_separation(plan: GroupPlan, ga: int, gb: int, start_s: np.ndarray, cutoff_m: float,
@@ -335,16 +379,24 @@ def group_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
               ("routed_hulls", lambda p: routed_waypoints(p, need)))
     routed: list[GroupPlan] = []
     for name, via in stages:
-        if via is not None:
+        out = None
+        if via is None:
+            out = schedule_groups(plan, need, **schedule_kw)
+        else:
             route = via(plan)
             if route is None:
                 continue
             via_m, prelude = route if isinstance(route, tuple) else (route, None)
-            plan.set_waypoints(via_m, prelude)
             plan.route = name
-        out = schedule_groups(plan, need, **schedule_kw)
-        if out is None and name.startswith("routed"):
-            out = sequential_schedule(plan, need)
+            # the legs blended at their shallow turns first (faster; the space-time check decides), else stopping at
+            # every waypoint
+            for blend in (True, False):
+                plan.set_waypoints(via_m, prelude, blend=blend)
+                out = schedule_groups(plan, need, **schedule_kw)
+                if out is None and name.startswith("routed"):
+                    out = sequential_schedule(plan, need)
+                if out is not None:
+                    break
         if out is not None and name.startswith("routed"):
             routed.append(out)            # both routings tried: the one that arrives first flies
         elif out is not None:
