@@ -202,14 +202,14 @@ class LifecycleMixin:
             if mode == PX4_HOLD and not self.landed:
                 # PX4 (multicopter): the loiter point is the braking stop ahead, not the position the hold began at
                 # (navigator's calculate_breaking_stop: "otherwise the vehicle will overshoot and go back")
-                self.hold_pos_m = braking_stop_m(self.plant.states, self.params["MPC_ACC_HOR"], self.params["MPC_JERK_AUTO"])[0]
+                self.hold_pos_m = braking_stop_m(self.plant.states, self.params["MPC_ACC_HOR"])[0]
             elif mode == PX4_POSCTL and not self.landed:
                 # PX4 Position mode, sticks centred: the vehicle follows a velocity setpoint braking from its current
                 # velocity, and the position locks where that reaches zero (StickAccelerationXY)
                 path = position_brake_path_m(self.plant.states[0], self.params["MPC_ACC_HOR"], self.params["MPC_VEL_MANUAL"],
                                              POSCTL_DT_S)
-                self.posctl_path = (self.sim_time_s(), path[0], path[1])
-                self.hold_pos_m = path[0][-1].copy()      # until the lock (vehicle._current_acc_m_s2)
+                self.posctl_path = (self.sim_time_s(), path[1])
+                self.hold_pos_m = path[0][-1].copy()      # the setpoint's stop, until the lock (vehicle._current_acc_m_s2)
             else:
                 self.hold_pos_m = self.state[0:2].copy()
             self.z_target_m = self.z_m

@@ -27,7 +27,6 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("COM_OF_LOSS_T", 1.0, 0.0, 60.0, "s", "Offboard setpoint loss timeout before the Hold failsafe (PX4)"),
     ParamSpec("MPC_ACC_HOR_MAX", 2.0, 0.01, 50.0, "m/s^2", "Airframe horizontal acceleration limit (plant acc_limit_m_s2)"),
     ParamSpec("MPC_ACC_HOR", 3.0, 2.0, 15.0, "m/s^2", "Hold's braking-stop point: the deceleration PX4 plans it with (navigator)"),
-    ParamSpec("MPC_JERK_AUTO", 4.0, 1.0, 80.0, "m/s^3", "Hold's braking-stop point: the jerk limit PX4 plans it with (navigator)"),
     ParamSpec("MPC_VEL_MANUAL", 10.0, 3.0, 20.0, "m/s", "Position mode: the stick-full speed, whose ratio to MPC_ACC_HOR sets the braking drag"),
     ParamSpec("SIM_WIND_C0", 0.1, 1e-4, 10.0, "1/s", "c0: velocity relaxation rate to the wind (eq. 1)"),
     ParamSpec("SIM_WIND_VN", 1.0, -50.0, 50.0, "m/s", "v_o north: mean wind (eq. 1)"),

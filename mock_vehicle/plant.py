@@ -173,17 +173,17 @@ def euler_maruyama_step(
     return np.concatenate([r_next, v_next], axis=1)
 
 
-def braking_stop_m(states: np.ndarray, acc_hor_m_s2: float = 3.0, jerk_auto_m_s3: float = 4.0) -> np.ndarray:
+def braking_stop_m(states: np.ndarray, acc_hor_m_s2: float = 3.0) -> np.ndarray:
     """Where a multicopter entering Hold holds, (n, 2): PX4's loiter point (navigator ``Loiter::set_loiter_position``
     -> ``MissionBlock::setLoiterItemFromCurrentPositionWithBreaking`` -> ``Navigator::calculate_breaking_stop``: "for
     multirotors we need to account for the braking distance, otherwise the vehicle will overshoot and go back"): the
     position moved along the course over ground by ``computeBrakingDistanceFromVelocity(|v|, MPC_JERK_AUTO,
-    MPC_ACC_HOR, 0.6 MPC_JERK_AUTO)`` = |v| (|v| / (2 MPC_ACC_HOR) + 0.6 MPC_JERK_AUTO / MPC_JERK_AUTO) (PX4's
-    TrajMath.hpp; defaults 3 m/s^2 and 4 m/s^3). states: (n, 4)."""
+    MPC_ACC_HOR, 0.6 MPC_JERK_AUTO)`` = |v| (|v| / (2 MPC_ACC_HOR) + 0.6 s): the jerk cancels (PX4's TrajMath.hpp;
+    default 3 m/s^2). states: (n, 4)."""
     states = np.asarray(states, dtype=float)
     v = states[:, 2:4]
     speed = np.linalg.norm(v, axis=1)
-    dist = speed * (speed / (2.0 * acc_hor_m_s2) + 0.6 * jerk_auto_m_s3 / jerk_auto_m_s3)
+    dist = speed * (speed / (2.0 * acc_hor_m_s2) + 0.6)
     unit = v / np.maximum(speed, 1e-300)[:, None]
     return states[:, 0:2] + dist[:, None] * unit
 

@@ -205,7 +205,7 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
         self.home = self._here()         # (lat, lon, alt, x, y, z local): set at boot and at arming, as PX4
         self._origin_sent = cfg.origin is None
         self.hold_pos_m = np.array(cfg.initial_pos_m, dtype=float)
-        self.posctl_path: tuple[float, np.ndarray, np.ndarray] | None = None    # Position mode: (t0, positions, velocities)
+        self.posctl_path: tuple[float, np.ndarray] | None = None    # Position mode: (t0, setpoint velocities)
         self.setpoint: SetPositionTargetLocalNed | None = None
         self._setpoint_flyable = True    # False: PX4's position controller refuses the held setpoint (stop and wait)
         self.applied_acc_m_s2 = np.zeros(2)
@@ -437,7 +437,7 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
             # plant.position_brake_path_m) with its acceleration fed forward, within the airframe's limit; once the
             # setpoint is zero the position locks where the vehicle is then (StickAccelerationXY::lockPosition), and a
             # vehicle that lagged behind the setpoint flies back to it, as PX4's does
-            t0, _, vs = self.posctl_path
+            t0, vs = self.posctl_path
             k = int((self.sim_time_s() - t0) / POSCTL_DT_S)
             if k < vs.shape[0] - 1:
                 k = max(k, 0)

@@ -155,7 +155,7 @@ def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
     v.handle(cmd(176, 1, 4, 3))
     assert v.mode == PX4_HOLD
     # then the hold point is PX4's braking stop ahead (Navigator::calculate_breaking_stop with MPC_ACC_HOR = 3 m/s^2,
-    # MPC_JERK_AUTO = 4 m/s^3: |v| (|v| / 6 + 0.6) along the course), not the position where the hold began ...
+    # the 0.6 s delay term: |v| (|v| / 6 + 0.6) along the course), not the position where the hold began ...
     assert v.hold_pos_m[0] - x0 == pytest.approx(vx0 * (vx0 / 6.0 + 0.6), rel=1e-6)
     assert abs(v.hold_pos_m[1] - v.state[1]) < 1e-6
     # ... and the vehicle brakes to it without overshooting and flying back against its former course

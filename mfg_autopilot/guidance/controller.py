@@ -275,6 +275,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
         self._plan_ids: tuple[np.ndarray, np.ndarray] | None = None     # (sorted ids, their plan particles): exchange_t0
+        self._index_particles: np.ndarray | None = None     # _particles_of(arange(N)), sensed_cutoff_m's lost test
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
         self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
         # the braking test (BackstopParams.plan_mismatch_brake_m_s2): per plan particle (= per vehicle id), the
@@ -291,7 +292,7 @@ class DefaultMFGController(_DefaultBase):
         p = self.preset
         S0 = np.asarray(states, dtype=float)
         self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
-        self._plan_ids = None                       # vehicle id -> its plan particle (the exchange's order): _formation_error
+        self._plan_ids, self._index_particles = None, None    # vehicle id -> its plan particle (the exchange's order)
         if ids is not None:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
             order = np.argsort(ids, kind="stable")
@@ -364,8 +365,10 @@ class DefaultMFGController(_DefaultBase):
         if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
             return None
         if bp.plan_lost_m > 0 and self._plan_ids is not None:
-            # _lost: by id; a row is delivered vehicle j under id j
-            part = self._particles_of(np.arange(states.shape[0]))
+            # _lost: by id; a row is delivered vehicle j under id j (the map is fixed from the exchange on)
+            if self._index_particles is None or self._index_particles.size != states.shape[0]:
+                self._index_particles = self._particles_of(np.arange(states.shape[0]))
+            part = self._index_particles
             dr = states[part >= 0, 0:2] - self.plan.states[part[part >= 0], 0:2]
             if np.any(dr[:, 0] ** 2 + dr[:, 1] ** 2 > (bp.plan_lost_m - margin) ** 2):
                 return None
