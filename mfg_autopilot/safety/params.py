@@ -68,6 +68,16 @@ class BackstopParams:
     escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
     escape_max_unplanned_fraction: float = 0.5   # a row sensing a larger share of off-plan vehicles gets the half-plane push
     escape_gap: bool = False          # also escape below the planned trigger from vehicles neither response covers (measured on one case only, slow: off)
+    # MFG: a UAV off its own particle by more than escape_yield_min_dev_m yields to a sensed vehicle that neither
+    # response covers and that flies its own particle (by id, within escape_yield_on_plan_m): it escapes (trigger /
+    # clearance below), the other keeps tracking, as the escape's prediction assumes. docs/default_controller.md,
+    # "A UAV off its particle yields to one on it"
+    escape_yield: bool = True
+    escape_yield_min_dev_m: float = 0.5
+    escape_yield_on_plan_m: float = 0.3
+    escape_yield_min_spacing_m: float = 1.0   # only where the plan's particles are this far apart now (room to pass)
+    escape_yield_trigger_m: float = 0.25   # used: min(this, 0.5 * smallest slot spacing)
+    escape_yield_clear_m: float = 0.5      # used: min(this, 0.6 * smallest slot spacing)
     escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
