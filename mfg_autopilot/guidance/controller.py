@@ -221,7 +221,7 @@ class _DefaultBase:
             planned &= ~off[sn.owner]
         da = backstop_acc(own, sn.states[planned], sn.owner[planned], bp)
         esc = np.zeros(self.n, dtype=bool)
-        # the more deviated of a pair that neither response covers yields (_yielding)
+        # a UAV off its own particle yields to a vehicle on its own that neither response covers (_yielding)
         yl = self._yielding(sn, planned | unplanned) if bp.escape and bp.escape_yield else np.zeros_like(unplanned)
         if np.any(unplanned) or np.any(yl):
             # the unplanned response's trigger and clearance, fitted to the slot spacing
@@ -632,7 +632,7 @@ class DefaultMFGController(_DefaultBase):
             return e.copy(), cnt
         sid, spart = self._plan_ids
         # the plan's spacing now: a translation spread in cruise holds its neighbours farther apart than at the start
-        r_max = self.preset.tracking.formation_radius_spacings * getattr(self.plan, "spacing_now_m", self.plan.spacing_m)
+        r_max = self.preset.tracking.formation_radius_spacings * self._spacing_now_m()
         # a sensed vehicle whose plan particle is near the own particle is near the own vehicle too (both track them):
         # the sensed positions pre-select, with the own deviation and twice the outlier bound as margin, before the
         # ids are looked up (the sensor delivers many more vehicles than the formation radius holds). A neighbour off
