@@ -95,10 +95,11 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
 
 
 # the reference is the backstop as it was before the lost-to-the-plan rule, the flow-relative escape reach (issue 18,
-# fifth session) and the yield of a UAV off its particle (sixth session; their own tests are in
-# tests/test_default_controller.py): compared with the three off
+# fifth session; since the seventh also the crowded push's), the yield of a UAV off its particle (sixth session) and
+# the gap push (seventh; their own tests are in tests/test_default_controller.py): compared with the four off
 AS_REFERENCE = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
-                                                                         unplanned_flow_m_s=0.0, escape_yield=False))
+                                                                         unplanned_flow_m_s=0.0, escape_yield=False,
+                                                                         gap_push=False))
 
 
 def _controller(scenario: str, n: int, rows: np.ndarray, seed: int):

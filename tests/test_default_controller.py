@@ -469,10 +469,12 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     m = fly(DEFAULT)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["arrived_fraction_others"] == 1.0
-    # the case exercises the rule: without it, that pair (with the yield rule off as well: since that came, the flight
-    # without the lost rule alone keeps 0.185 m, through what the yields changed before)
+    # the case exercises the rule: without it, that pair (with the rules that came after it off as well - the yield,
+    # the gap push and the crowded push's flow reach: the flight without the lost rule alone keeps 0.185 m, through
+    # what the yields changed before, and with the yield off but the two others on it has no pair either)
     off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
-                                                                        escape_yield=False)))
+                                                                        escape_yield=False, gap_push=False,
+                                                                        push_flow_reach=False)))
     assert [10, 548] in off["collided_pairs_list"], off["collided_pairs_list"]
 
 
@@ -484,6 +486,54 @@ def _lane_mates(x, a):
     lane = np.flatnonzero(across < 0.2)
     behind, ahead = lane[along[lane] < -0.5], lane[along[lane] > 0.5]
     return behind[np.argmax(along[behind])], ahead[np.argmin(along[ahead])]
+
+
+def test_two_uavs_off_their_particles_that_close_on_each_other_get_the_gap_push():
+    # given the crossing plan in cruise (a rigid plan, 1.41 m apart), a gust that blew every UAV 1 m sideways, and two
+    # lane mates a (behind) and c (ahead) of which c was blown 0.35 m further back and 0.1 m further aside and closes
+    # on a at 0.65 m/s: each is off the plan the way the other is up to 0.49 m (state metric), so the common-mode check
+    # clears it, and each is more than 0.1 m off its own particle, so the planned response is off: neither response
+    # covers the pair (the gap; swap4 --gust N = 10,000 seed 8, UAVs 9400 and 9401 closed from 0.55 m to 0.06 m so)
+    def step(preset):
+        c_ = _controller_in_cruise("crossing", 50, 40, preset=preset)
+        x = c_.plan.states.copy()
+        for a in range(x.shape[0]):                                         # the first UAV with a mate ahead
+            try:
+                _, c = _lane_mates(x, a)
+                break
+            except ValueError:
+                continue
+        v_hat = x[a, 2:4] / np.linalg.norm(x[a, 2:4])
+        side = np.array([-v_hat[1], v_hat[0]])
+        obs = x.copy()
+        obs[:, 0:2] += 1.0 * side                                           # the gust: everyone 1 m sideways
+        obs[c, 0:2] += -0.35 * v_hat + 0.1 * side
+        obs[c, 2:4] -= 0.65 * v_hat
+        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c_.sensor_range_m, output_type="ndarray"))
+        info = c_.act(Observation(40, 40 * DEFAULT.dt_s, obs, None, sensed))
+        return a, c, obs, sensed, c_, np.asarray(info.acc_m_s2)
+    off = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, gap_push=False))
+    a, c, obs, sn, c_off, acc_off = step(off)
+    # the gap: to each, the other is near some particle or off the plan the way it is itself (common mode), and
+    # without the gap push neither acts
+    pair = ((sn.owner == a) & (sn.ids == c)) | ((sn.owner == c) & (sn.ids == a))
+    assert not (c_off._unplanned(sn.states[pair], sn.ids[pair])
+                & c_off._unplanned(sn.states[pair] - c_off._own_err[sn.owner[pair]])).any()
+    assert not c_off.backstop_active[[a, c]].any()
+    a_, c2, _, sn2, c_on, acc_on = step(DEFAULT)
+    assert (a_, c2) == (a, c)
+    # with it, the pair (both ways) and nothing else gets the push, and both act (reciprocal: each takes half of it)
+    gp = c_on._gap_pairs(sn2, np.zeros(sn2.states.shape[0], dtype=bool))
+    assert gp[pair].all()
+    assert c_on.backstop_active[[a, c]].all() and c_on.backstop_active.sum() == 2
+    # the commands open the pair at least as fast as the nominal ones (the half-plane keeps a nominal that already
+    # separates them: minimal intervention); the separating direction is the pair's closest approach, c - a in 1 s
+    rel = obs[c] - obs[a]
+    n_hat = (rel[0:2] + 1.0 * rel[2:4]) / np.linalg.norm(rel[0:2] + 1.0 * rel[2:4])
+    assert (acc_on[c] - acc_on[a]) @ n_hat >= (acc_off[c] - acc_off[a]) @ n_hat - 1e-9
+    # where the particles are closer than gap_push_min_spacing_m, nobody gets it
+    cramped = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, gap_push_min_spacing_m=1.5))
+    assert not step(cramped)[4].backstop_active[[a, c]].any()
 
 
 def test_a_uav_off_its_particle_yields_to_one_on_it_that_it_catches_up_with():
@@ -520,4 +570,5 @@ def test_a_uav_off_its_particle_yields_to_one_on_it_that_it_catches_up_with():
     # where the particles are closer than escape_yield_min_spacing_m (no room to pass between two) nobody yields
     cramped = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, escape_yield_min_spacing_m=1.5))
     assert not step(cramped)[3].any()
+
 

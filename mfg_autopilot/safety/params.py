@@ -50,6 +50,10 @@ class BackstopParams:
     unplanned_flow_trigger_m: float = 0.25
     unplanned_flow_target_m: float = 0.5
     unplanned_share: float = 1.0
+    # MFG: the crowd fallback's half-plane push (escape_max_unplanned_fraction below) takes the flow reach per vehicle
+    # too (False: unplanned_trigger_m / unplanned_target_m for all). docs/default_controller.md, "The crowded push takes
+    # the flow reach too"
+    push_flow_reach: bool = True
     common_mode: bool = True           # MFG: a vehicle off the plan by the own deviation (a shared gust) is not unplanned
     common_mode_min_own_dev_m: float = 0.2   # ... checked only for rows this far off their own particle (same metric)
     # MFG: the escape manoeuvre against unplanned vehicles (backstop.escape_acc) instead of the
@@ -78,6 +82,16 @@ class BackstopParams:
     escape_yield_min_spacing_m: float = 1.0   # only where the plan's particles are this far apart now (room to pass)
     escape_yield_trigger_m: float = 0.25   # used: min(this, 0.5 * smallest slot spacing)
     escape_yield_clear_m: float = 0.5      # used: min(this, 0.6 * smallest slot spacing)
+    # MFG: sensed vehicles that no other response covers (the gap: both off their particles, each near some particle or
+    # cleared as common mode) get a reciprocal half-plane push when predicted (over gap_push_horizon_s) closer than
+    # gap_push_trigger_fraction x the plan's spacing now, for gap_push_target_fraction x it; only while that spacing
+    # is at least gap_push_min_spacing_m. docs/default_controller.md, "The gap push"
+    gap_push: bool = True
+    gap_push_trigger_fraction: float = 0.35
+    gap_push_target_fraction: float = 0.45
+    gap_push_share: float = 0.5
+    gap_push_horizon_s: float = 1.0
+    gap_push_min_spacing_m: float = 1.0
     escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
