@@ -572,3 +572,23 @@ def test_a_uav_off_its_particle_yields_to_one_on_it_that_it_catches_up_with():
     assert not step(cramped)[3].any()
 
 
+
+def test_particles_of_maps_each_exchanged_id_to_its_particle_by_table_or_binary_search():
+    # given t = 0 exchanges whose ids are numbered as the simulator does (0..N-1, shuffled: by a table), with gaps and
+    # a repeated id (a table), and as a real swarm may (large system ids: by binary search)
+    rng = np.random.default_rng(3)
+    sc = make_scenario("crossing", 50)
+    S0 = as_f32(SwarmPlant(sc.initial_pos_m, plant_params_for(DEFAULT), seed=0).states)
+    c = make_controller("mfg", DEFAULT, sc.destination_m)
+    probe_extra = np.array([-3, -1, 0, 1, 5, 59, 61, 10**9 + 7, 10**12])
+    tables = []
+    for ids in (rng.permutation(50), np.r_[np.arange(0, 98, 2), 4], 10**9 + rng.permutation(50)):
+        c.exchange_t0(S0, ids, np.arange(50), sc.destination_m)
+        tables.append(c._id_table is not None)
+        first = {}
+        for k, i in enumerate(ids.tolist()):
+            first.setdefault(i, k)
+        probe = np.r_[ids, probe_extra]
+        # then each id gets the particle of its first place in the exchange, every other id -1
+        assert c._particles_of(probe).tolist() == [first.get(i, -1) for i in probe.tolist()]
+    assert tables == [True, True, False]

@@ -303,6 +303,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
         self._plan_ids: tuple[np.ndarray, np.ndarray] | None = None     # (sorted ids, their plan particles): exchange_t0
+        self._id_table: np.ndarray | None = None    # id -> plan particle (-1: none) for small non-negative ids: exchange_t0
         self._index_particles: np.ndarray | None = None     # _particles_of(arange(N)), sensed_cutoff_m's lost test
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
         self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
@@ -321,10 +322,15 @@ class DefaultMFGController(_DefaultBase):
         S0 = np.asarray(states, dtype=float)
         self.own_index = np.asarray(own_index, dtype=np.int64).reshape(self.n)
         self._plan_ids, self._index_particles = None, None    # vehicle id -> its plan particle (the exchange's order)
+        self._id_table = None
         if ids is not None:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
             order = np.argsort(ids, kind="stable")
             self._plan_ids = (ids[order], order)
+            if ids.size and ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
+                # _particles_of's table; filled last to first, so that a repeated id keeps its first particle
+                self._id_table = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
+                self._id_table[ids[::-1]] = np.arange(ids.size - 1, -1, -1, dtype=np.int64)
         self._plan_tree, self._flow_tree = None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev = None, None, None
@@ -618,7 +624,17 @@ class DefaultMFGController(_DefaultBase):
         return None if prev is None else (v - prev) / self.preset.dt_s
 
     def _particles_of(self, ids: np.ndarray) -> np.ndarray:
-        """(m,) the plan particle of each vehicle id (the t = 0 exchange's order), -1 for an id it did not hold."""
+        """(m,) the plan particle of each vehicle id (the t = 0 exchange's order), -1 for an id it did not hold. By a
+        table where the exchange's ids are small non-negative integers (the simulator's 0..N-1: a gather instead of
+        a binary search over millions of sensed entries per step after a gust), else by binary search; the same
+        answer either way (a repeated id: its first particle)."""
+        table = self._id_table
+        if table is not None:
+            ids = np.asarray(ids)
+            inside = (ids >= 0) & (ids < table.size)
+            if inside.all():
+                return table[ids]
+            return np.where(inside, table[np.where(inside, ids, 0)], -1)
         sid, spart = self._plan_ids
         at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
         return np.where(sid[at] == ids, spart[at], -1)
