@@ -481,7 +481,13 @@ class DefaultMFGController(_DefaultBase):
         metric |dr|^2 + (plan_mismatch_s |dv|)^2 (the plan -
         the same on every UAV - says where everyone should be; no communication needed), and those
         lost to the plan (_lost)."""
-        return self._off_plan(sensed_states, ids) | self._lost(sensed_states, ids)
+        d = self._distinct(sensed_states, ids)
+        if d is None:
+            return self._off_plan(sensed_states, ids) | self._lost(sensed_states, ids)
+        # each sensed vehicle once (many rows sense it, with the same state): both tests per distinct id
+        first, inv = d
+        q1, i1 = sensed_states[first], np.asarray(ids, dtype=np.int64)[first]
+        return (self._beyond_plan(q1, self.preset.backstop.plan_mismatch_m, i1) | self._lost(q1, i1))[inv]
 
     def _lost(self, states: np.ndarray, ids: np.ndarray | None) -> np.ndarray:
         """(m,) bool: vehicles farther than ``plan_lost_m`` from their own plan particle (known by their id from the
@@ -558,31 +564,41 @@ class DefaultMFGController(_DefaultBase):
             return out
         return ~covered
 
+    @staticmethod
+    def _distinct(q: np.ndarray, ids: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(first, inv): one representative entry per distinct id and each entry's rank among them (q[first][inv] is q),
+        where every entry of an id carries the same state (the same vehicle sensed by many rows); None where ids are
+        missing or two entries of one id differ. Distinct ids ascending, as np.unique gives them, in O(m + max id)
+        instead of a sort where the ids are small; the representative of an id is one of its entries."""
+        if ids is None or len(ids) != q.shape[0] or q.shape[0] == 0:
+            return None
+        ids = np.asarray(ids, dtype=np.int64)
+        if ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
+            present = np.zeros(int(ids.max()) + 1, dtype=bool)
+            present[ids] = True
+            rep = np.empty(present.size, dtype=np.int64)
+            rep[ids] = np.arange(ids.size)
+            first = rep[present]
+            inv = (np.cumsum(present) - 1)[ids]
+        else:
+            _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+            inv = inv.reshape(-1)
+        if not np.array_equal(q[first][inv], q):
+            return None
+        return first, inv
+
     def _off_plan(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
         """_unplanned's distance to the nearest particle (ids: only to query each vehicle once)."""
         if sensed_states.shape[0] == 0:
             return np.zeros(0, dtype=bool)
-        q = sensed_states
+        q, mismatch_m = sensed_states, self.preset.backstop.plan_mismatch_m
+        d = self._distinct(q, ids)
+        if d is not None:
+            first, inv = d
+            return self._beyond_plan(q[first], mismatch_m, np.asarray(ids, dtype=np.int64)[first])[inv]
         if ids is not None and len(ids) == q.shape[0]:
-            # the same vehicle is sensed by many rows: query each distinct state once (the same distance),
-            # after checking that every row of an id carries the same state (else query them all)
-            # (distinct ids ascending and each row's rank among them, as np.unique gives them, in O(m + max id)
-            # instead of a sort; the representative row of an id is its last one - all carry the same state)
-            ids = np.asarray(ids, dtype=np.int64)
-            if ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
-                present = np.zeros(int(ids.max()) + 1, dtype=bool)
-                present[ids] = True
-                rep = np.empty(present.size, dtype=np.int64)
-                rep[ids] = np.arange(ids.size)
-                first = rep[present]
-                inv = (np.cumsum(present) - 1)[ids]
-            else:
-                _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-                inv = inv.reshape(-1)
-            if np.array_equal(q[first][inv], q):
-                return self._beyond_plan(q[first], self.preset.backstop.plan_mismatch_m, ids[first])[inv]
-            return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m, ids)
-        return self._beyond_plan(q, self.preset.backstop.plan_mismatch_m)
+            return self._beyond_plan(q, mismatch_m, np.asarray(ids, dtype=np.int64))
+        return self._beyond_plan(q, mismatch_m)
 
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
                          clear_m: float) -> tuple[np.ndarray, np.ndarray]:
