@@ -104,15 +104,19 @@ class RunConfig:
     on_poll: Callable[[], object] | None = None   # called every 0.2 s while the swarm flies and once after (run --live)
 
 
-def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200) -> tuple[list[int], list[int]]:
+def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200,
+                     exclude: frozenset[int] | set[int] = frozenset()) -> tuple[list[int], list[int]]:
     """Consecutive loopback ports, all free at once: n_udp UDP ports from b and n_tcp TCP ports
     from b + n_udp. Chosen below Linux's ephemeral range (32768-60999), so that the source
     ports the OS hands to other sockets (a mock's udpout, a Zenoh connection) cannot take
-    them between this check and the children binding them."""
+    them between this check and the children binding them. None of them in ``exclude`` (ports
+    already promised to this launch but not bound yet: free now, taken later)."""
     rng = random.Random(os.getpid() ^ int(time.time() * 1e3))
     span = n_udp + n_tcp
     for _ in range(tries):
         b = rng.randrange(lo, hi - span)
+        if exclude and not exclude.isdisjoint(range(b, b + span)):
+            continue
         socks = []
         try:
             for i in range(n_udp):
@@ -388,7 +392,16 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     mission = {"sites_m": sc.destination_m.tolist()}
     write_json_atomic(out / "mission.json", mission)
 
-    auto_mav, auto_z = _free_port_block(n, n + 1)
+    # every port this launch picks itself in one block (the world's UDP port after the vehicles'), clear of the ports
+    # given: picked one block at a time, the world's port once landed on a controller's, free at the check and bound by
+    # the world before that controller started (`./dev run`: "udpin:127.0.0.1:20129: Address already in use")
+    given = set()
+    if cfg.mavlink_base_port is not None:
+        given |= set(range(cfg.mavlink_base_port, cfg.mavlink_base_port + n))
+    if cfg.zenoh_base_port is not None:
+        given |= set(range(cfg.zenoh_base_port, cfg.zenoh_base_port + n + 1))
+    auto_udp, auto_z = _free_port_block(n + 1, n + 1, exclude=given)
+    auto_mav, auto_world_port = auto_udp[:n], auto_udp[n]
     if cfg.mavlink_base_port is None:
         mav_ports = auto_mav
     else:
@@ -410,7 +423,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     wind = plant_params_for(preset, cfg.physics_dt_s).wind
     # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
     sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
-    world_port = _free_port_block(1, 0)[0][0] if sensor_range_m is not None else None
+    world_port = auto_world_port if sensor_range_m is not None else None
     world: list[_Child] = []
     children: list[_Child] = []
     router: list[_Child] = []
