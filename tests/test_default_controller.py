@@ -488,6 +488,26 @@ def _lane_mates(x, a):
     return behind[np.argmax(along[behind])], ahead[np.argmin(along[ahead])]
 
 
+def _lane_in_cruise(preset):
+    """The crossing plan in cruise (N = 50, step 40): (controller bank, plan states, a, b, c, v_hat) for the first UAV
+    a with lane mates behind (b) and ahead (c), v_hat its unit flight direction."""
+    c_ = _controller_in_cruise("crossing", 50, 40, preset=preset)
+    x = c_.plan.states.copy()
+    for a in range(x.shape[0]):
+        try:
+            b, c = _lane_mates(x, a)
+            break
+        except ValueError:
+            continue
+    return c_, x, a, b, c, x[a, 2:4] / np.linalg.norm(x[a, 2:4])
+
+
+def _act_once(c_, obs):
+    """One control step of the bank on the observed states obs (every vehicle sensed within range): (sensed, info)."""
+    sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c_.sensor_range_m, output_type="ndarray"))
+    return sensed, c_.act(Observation(40, 40 * DEFAULT.dt_s, obs, None, sensed))
+
+
 def test_two_uavs_off_their_particles_that_close_on_each_other_get_the_gap_push():
     # given the crossing plan in cruise (a rigid plan, 1.41 m apart), a gust that blew every UAV 1 m sideways, and two
     # lane mates a (behind) and c (ahead) of which c was blown 0.35 m further back and 0.1 m further aside and closes
@@ -495,22 +515,13 @@ def test_two_uavs_off_their_particles_that_close_on_each_other_get_the_gap_push(
     # clears it, and each is more than 0.1 m off its own particle, so the planned response is off: neither response
     # covers the pair (the gap; swap4 --gust N = 10,000 seed 8, UAVs 9400 and 9401 closed from 0.55 m to 0.06 m so)
     def step(preset):
-        c_ = _controller_in_cruise("crossing", 50, 40, preset=preset)
-        x = c_.plan.states.copy()
-        for a in range(x.shape[0]):                                         # the first UAV with a mate ahead
-            try:
-                _, c = _lane_mates(x, a)
-                break
-            except ValueError:
-                continue
-        v_hat = x[a, 2:4] / np.linalg.norm(x[a, 2:4])
+        c_, x, a, _, c, v_hat = _lane_in_cruise(preset)
         side = np.array([-v_hat[1], v_hat[0]])
         obs = x.copy()
         obs[:, 0:2] += 1.0 * side                                           # the gust: everyone 1 m sideways
         obs[c, 0:2] += -0.35 * v_hat + 0.1 * side
         obs[c, 2:4] -= 0.65 * v_hat
-        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c_.sensor_range_m, output_type="ndarray"))
-        info = c_.act(Observation(40, 40 * DEFAULT.dt_s, obs, None, sensed))
+        sensed, info = _act_once(c_, obs)
         return a, c, obs, sensed, c_, np.asarray(info.acc_m_s2)
     off = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, gap_push=False))
     a, c, obs, sn, c_off, acc_off = step(off)
@@ -543,21 +554,12 @@ def test_a_uav_off_its_particle_yields_to_one_on_it_that_it_catches_up_with():
     # particle and a for a planned one: in a rigid plan neither gets a response (the gap; swap4 --gust N = 10,000
     # seeds 5 and 7 collided this way)
     def step(preset):
-        c_ = _controller_in_cruise("crossing", 50, 40, preset=preset)
-        x = c_.plan.states.copy()
-        for a in range(x.shape[0]):                                         # the first UAV with mates both sides
-            try:
-                b, c = _lane_mates(x, a)
-                break
-            except ValueError:
-                continue
-        v_hat = x[a, 2:4] / np.linalg.norm(x[a, 2:4])
+        c_, x, a, b, c, v_hat = _lane_in_cruise(preset)
         obs = x.copy()
         obs[b, 0:2] += 30.0 * np.array([-v_hat[1], v_hat[0]])                  # out of everyone's range
         obs[c, 0:2] = x[b, 0:2] + 0.3 * v_hat
         obs[c, 2:4] = x[c, 2:4] + 0.5 * v_hat
-        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c_.sensor_range_m, output_type="ndarray"))
-        c_.act(Observation(40, 40 * DEFAULT.dt_s, obs, None, sensed))      # the own deviations; the plan stays at k
+        sensed, _ = _act_once(c_, obs)                                      # the own deviations; the plan stays at k
         assert not c_._off_plan(obs[[c]]).any() and not c_._unplanned(obs[[c]], np.array([c])).any()   # the gap
         yl = c_._yielding(sensed, np.zeros(sensed.states.shape[0], dtype=bool))
         return a, c, sensed, yl

@@ -48,6 +48,12 @@ def _sensed(obs: Observation) -> Neighbours:
     return obs.sensed if obs.sensed is not None else Neighbours.empty()
 
 
+def _dense_ids(ids: np.ndarray) -> bool:
+    """Vehicle ids (int64, non-empty) small and non-negative enough to index a table of max id + 1 entries (the
+    simulator's 0..N-1): a gather then replaces a sort or a binary search."""
+    return bool(ids.min() >= 0 and ids.max() < 4 * ids.size + 1024)
+
+
 def _kernel_arg(a: np.ndarray, dtype) -> np.ndarray:
     """a as a writable C-contiguous array of dtype (a copy only if it is not one): the types the compiled kernels were
     warmed up with (a read-only or strided array would compile a new specialisation inside a control step)."""
@@ -327,7 +333,7 @@ class DefaultMFGController(_DefaultBase):
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
             order = np.argsort(ids, kind="stable")
             self._plan_ids = (ids[order], order)
-            if ids.size and ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
+            if ids.size and _dense_ids(ids):
                 # _particles_of's table; filled last to first, so that a repeated id keeps its first particle
                 self._id_table = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
                 self._id_table[ids[::-1]] = np.arange(ids.size - 1, -1, -1, dtype=np.int64)
@@ -573,7 +579,7 @@ class DefaultMFGController(_DefaultBase):
         if ids is None or len(ids) != q.shape[0] or q.shape[0] == 0:
             return None
         ids = np.asarray(ids, dtype=np.int64)
-        if ids.min() >= 0 and ids.max() < 4 * ids.size + 1024:
+        if _dense_ids(ids):
             present = np.zeros(int(ids.max()) + 1, dtype=bool)
             present[ids] = True
             rep = np.empty(present.size, dtype=np.int64)
