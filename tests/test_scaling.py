@@ -1,6 +1,8 @@
 """Simulator scaling (issue 8): the shortcuts that make N = 10,000 tractable give what the
 plain all-pairs computations give (exactly, or within the stated tolerance)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -118,6 +120,8 @@ def test_pairs_within_reach_are_exactly_the_brute_force_ones(seed):
 
 @pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {"fail_vehicle": 24, "fail_at_s": 10.0}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
                                                    ("mfg", "crossing", 50, {"fail_vehicle": 27, "fail_at_s": 15.0}),
+                                                   ("mfg", "swap4", 144, {"gust": sim.GustParams()}),
+                                                   ("mfg", "paper", 400, {"fail_vehicle": 0, "fail_at_s": 20.0}),
                                                    ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
 def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
     # given runs in which the backstop acts (dense formation, a failed vehicle)
@@ -198,3 +202,43 @@ def test_mfg_sensed_cutoff_covers_the_escape_once_a_vehicle_leaves_the_plan():
     off = ctrl.plan.states.copy()
     off[4, 2:4] = 0.0
     assert ctrl.sensed_cutoff_m(off) is None
+
+
+def test_mfg_sensed_cutoff_widens_only_the_rows_within_the_sensor_range_of_a_vehicle_off_the_plan():
+    # given a default MFG bank of 400 (28 m across) after the t = 0 exchange
+    import mfg_autopilot.guidance.controller as pd
+    sc = make_scenario("paper", 400)
+    s0 = np.concatenate([sc.initial_pos_m, np.tile(DEFAULT.cost.v_o, (400, 1))], axis=1)
+    ctrl = pd.DefaultMFGController(DEFAULT, sc.destination_m)
+    ctrl.exchange_t0(s0, np.arange(400), np.arange(400), sc.destination_m)
+    bp = DEFAULT.backstop
+    on_plan = ctrl.sensed_cutoff_m(ctrl.plan.states.copy())
+    # when one vehicle at the swarm's edge hovers while the plan moves on, or one row is blown 1.1 m off its particle
+    # to 0.3 m from its neighbour's (on the plan, but it may yield: its escape weighs every vehicle it senses)
+    for bad, change in ((0, "hover"), (399, "blown")):
+        x = ctrl.plan.states.copy()
+        if change == "hover":
+            x[bad, 2:4] = 0.0
+        else:
+            x[bad, 0:2] = x[398, 0:2] + 0.3 * (x[bad, 0:2] - x[398, 0:2]) / np.linalg.norm(x[bad, 0:2] - x[398, 0:2])
+        base, extra = ctrl.sensed_cutoff_m(x)
+        # then the rows within the sensor range of the hovering vehicle (or the blown row alone) get the whole range,
+        # and every other row the reach it has while everyone flies the plan
+        d = np.linalg.norm(x[:, 0:2] - x[bad, 0:2], axis=1)
+        wide = d <= bp.sensor_range_m if change == "hover" else np.arange(400) == bad
+        assert base == on_plan[0]
+        assert np.all(extra[wide] >= bp.sensor_range_m)
+        np.testing.assert_array_equal(extra[~wide], on_plan[1][~wide])
+        assert 0 < wide.sum() < 400 and np.all(extra[~wide] < bp.sensor_range_m / 2)
+    # when the plan has parked every particle in its slot and vehicle 5 sits 0.1 m from vehicle 6's parked particle
+    # (on the plan; to row 6 it claims its slot: unplanned, own_slot_claim)
+    while np.any(np.hypot(ctrl.plan.states[:, 2], ctrl.plan.states[:, 3]) > 0.0):
+        ctrl.plan.advance()
+    ctrl._cutoff_hist.clear()            # the braking test has no previous sample here: not this case
+    x = ctrl.plan.states.copy()
+    x[5, 0:2] = x[6, 0:2] + np.array([0.1, 0.0])
+    b = replace(DEFAULT.backstop, plan_mismatch_brake_m_s2=0.0)
+    ctrl.preset = replace(DEFAULT, backstop=b)
+    base, extra = ctrl.sensed_cutoff_m(x)
+    # then row 6 (its slot claimed) and row 5 (1.4 m off its particle: it may yield) get the whole range, no other
+    assert set(np.flatnonzero(extra >= bp.sensor_range_m)) == {5, 6}

@@ -381,14 +381,17 @@ class DefaultMFGController(_DefaultBase):
         return {"plan": "interacting", "clearance_m": None}
 
     def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
-        """As the base class while every vehicle flies the plan; None (everything within the sensor
-        range) as soon as any vehicle might be 'unplanned': the escape manoeuvre (backstop.escape_acc)
-        then looks at every sensed vehicle over candidate accelerations up to a_max, far beyond the
-        trigger reach. Whether a vehicle is unplanned depends only on its own state and the plan
-        (the common-mode re-check and the own-deviation gate only remove responses), so it is
-        decided here on the true states with a margin for the sensor's quantisation; the braking test
-        (_unplanned_by_braking) also on the states passed at the previous step (kept here; None when
-        there are none, a bank of one: the sensed_cutoff_m calls are the simulator's, one per step)."""
+        """As the base class while every vehicle flies the plan. A row within the sensor range of a vehicle that
+        might be 'unplanned' gets the whole range (extra_i >= the range): the escape manoeuvre (backstop.escape_acc)
+        then looks at every sensed vehicle over candidate accelerations up to a_max, far beyond the trigger reach, and
+        the crowd fallback counts every sensed vehicle; so does a row that may yield (_yielding: off its own particle)
+        or that may claim its parked slot (_claim_rows); None (everything within the range, for every row) when that
+        is every row. Whether a vehicle is unplanned depends only on its own state and the plan (the common-mode
+        re-check and the own-deviation gate only remove responses), so it is decided here on the true states with a
+        margin for the sensor's quantisation; the braking test (_unplanned_by_braking) also on the states passed at
+        the previous step (kept here; None when there are none, a bank of one: the sensed_cutoff_m calls are the
+        simulator's, one per step). A row with no such vehicle within its range decides exactly as when every vehicle
+        flies the plan (tests/test_scaling.py flies both deliveries bit for bit, with a gust and a failed vehicle)."""
         bp = self.preset.backstop
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
@@ -402,22 +405,25 @@ class DefaultMFGController(_DefaultBase):
             self._cutoff_hist = {kk: x for kk, x in self._cutoff_hist.items() if kk == k - 1}
             self._cutoff_hist[k] = states.copy()
             a_plan = self._plan_acc(k)
-        if np.any(self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)):
-            return None
+        # the vehicles that may be unplanned to some row (off the plan, lost to it, or braking off it): every row within
+        # the sensor range of one needs every vehicle it senses (the crowd count, the escape, the braking test's skip);
+        # and the rows that may yield (the escape): wide_rows. The rest keep the reach below.
+        unpl = self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)
+        wide_rows = np.zeros(states.shape[0], dtype=bool)
         yield_m = bp.escape_yield_min_dev_m if bp.escape and bp.escape_yield else float("inf")
         if (bp.plan_lost_m > 0 or np.isfinite(yield_m)) and self._plan_ids is not None:
             # _lost: by id; a row is delivered vehicle j under id j (the map is fixed from the exchange on)
             if self._index_particles is None or self._index_particles.size != states.shape[0]:
                 self._index_particles = self._particles_of(np.arange(states.shape[0]))
             part = self._index_particles
-            dr = states[part >= 0, 0:2] - self.plan.states[part[part >= 0], 0:2]
+            known = np.flatnonzero(part >= 0)
+            dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
             d2 = dr[:, 0] ** 2 + dr[:, 1] ** 2
-            if bp.plan_lost_m > 0 and np.any(d2 > (bp.plan_lost_m - margin) ** 2):
-                return None
+            if bp.plan_lost_m > 0:
+                unpl[known[d2 > (bp.plan_lost_m - margin) ** 2]] = True
             # _yielding: a row that far off its own particle may escape (its trigger predicts its nominal command
             # over the horizon, beyond the reach below)
-            if np.any(d2 > (yield_m - margin) ** 2):
-                return None
+            wide_rows[known[d2 > (yield_m - margin) ** 2]] = True
         if bp.plan_mismatch_brake_m_s2 > 0:
             # the braking test on the same states against their state at the previous step, without the observer's own
             # deviation (it only removes flags); margin: the quantisation of two velocity samples
@@ -429,8 +435,14 @@ class DefaultMFGController(_DefaultBase):
                 a_marg = 2.0 * self._SENSED_VEL_MARGIN_M_S / dt
                 m2 = margin + (0.5 * dt * dt + bp.plan_mismatch_s * dt) * a_marg
                 beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m - m2, hint[rows])
-                if np.any(braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg, beyond)):
-                    return None
+                unpl |= braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg, beyond)
+        wide_rows |= self._claim_rows(states, margin)
+        if np.any(unpl):
+            # every row within the sensor range of a possibly unplanned vehicle (the simulator's sensor: the same states)
+            d, _ = cKDTree(states[unpl, 0:2]).query(states[:, 0:2], k=1, distance_upper_bound=bp.sensor_range_m + margin)
+            wide_rows |= np.isfinite(d)
+        if np.all(wide_rows):
+            return None
         reach = super().sensed_cutoff_m(states)
         if reach is not None and bp.gap_push and self._spacing_now_m() >= bp.gap_push_min_spacing_m:
             # _gap_pairs: the gap push's trigger follows the spacing now, over its own horizon
@@ -444,7 +456,32 @@ class DefaultMFGController(_DefaultBase):
             # spacing keeps the reach short where the vehicles are dense)
             sp = getattr(self.plan, "spacing_reach_m", self.plan.spacing_m)
             reach = (max(reach[0], tp.formation_radius_spacings * sp + 2.0 * bp.plan_mismatch_m + margin), reach[1])
+        if reach is not None and np.any(wide_rows):
+            # base + extra_i + extra_j >= the sensor range for a wide row i: it is delivered every vehicle it senses
+            reach = (reach[0], np.where(wide_rows, max(bp.sensor_range_m, float(np.max(reach[1]))), reach[1]))
         return reach
+
+    def _claim_rows(self, states: np.ndarray, margin: float) -> np.ndarray:
+        """(N,) bool: the vehicles (rows of a bank holding every vehicle, states (N, 4) in id order) whose own plan particle
+        is parked (own_slot_claim_max_speed_m_s) with another vehicle within the own-slot claim's radius of it (plus
+        margin): to that row the other vehicle is unplanned (own_slot_claim in _backstop), wherever it is on the plan."""
+        bp = self.preset.backstop
+        out = np.zeros(states.shape[0], dtype=bool)
+        if not bp.own_slot_claim or self._plan_ids is None or states.shape[0] < 2:
+            return out
+        if self._index_particles is None or self._index_particles.size != states.shape[0]:
+            self._index_particles = self._particles_of(np.arange(states.shape[0]))
+        part = self._index_particles
+        p = self.plan.states
+        rows = np.flatnonzero(part >= 0)
+        pr = p[part[rows]]
+        rows = rows[pr[:, 2] ** 2 + pr[:, 3] ** 2 < bp.own_slot_claim_max_speed_m_s ** 2]
+        if rows.size == 0:
+            return out
+        r = min(bp.plan_mismatch_m, 0.5 * self._spacing_m()) + margin
+        d, j = cKDTree(states[:, 0:2]).query(p[part[rows], 0:2], k=2, distance_upper_bound=r)
+        out[rows] = np.any(np.isfinite(d) & (j != rows[:, None]), axis=1)
+        return out
 
     _BRUTE_MAX_PAIRS = 4096     # _beyond_plan: up to this many (state, particle) pairs by brute force, not the k-d tree
 
