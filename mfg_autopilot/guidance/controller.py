@@ -526,7 +526,10 @@ class DefaultMFGController(_DefaultBase):
         lost to the plan (_lost)."""
         d = self._distinct(sensed_states, ids)
         if d is None:
-            return self._off_plan(sensed_states, ids) | self._lost(sensed_states, ids)
+            # ids missing, or differing states under one id: every entry (_off_plan without its own _distinct)
+            hint = np.asarray(ids, dtype=np.int64) if ids is not None and len(ids) == sensed_states.shape[0] else None
+            return (self._beyond_plan(sensed_states, self.preset.backstop.plan_mismatch_m, hint)
+                    | self._lost(sensed_states, ids))
         # each sensed vehicle once (many rows sense it, with the same state): both tests per distinct id
         first, inv = d
         q1, i1 = sensed_states[first], np.asarray(ids, dtype=np.int64)[first]
