@@ -413,9 +413,7 @@ class DefaultMFGController(_DefaultBase):
         yield_m = bp.escape_yield_min_dev_m if bp.escape and bp.escape_yield else float("inf")
         if (bp.plan_lost_m > 0 or np.isfinite(yield_m)) and self._plan_ids is not None:
             # _lost: by id; a row is delivered vehicle j under id j (the map is fixed from the exchange on)
-            if self._index_particles is None or self._index_particles.size != states.shape[0]:
-                self._index_particles = self._particles_of(np.arange(states.shape[0]))
-            part = self._index_particles
+            part = self._vehicle_particles(states.shape[0])
             known = np.flatnonzero(part >= 0)
             dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
             d2 = dr[:, 0] ** 2 + dr[:, 1] ** 2
@@ -461,6 +459,13 @@ class DefaultMFGController(_DefaultBase):
             reach = (reach[0], np.where(wide_rows, max(bp.sensor_range_m, float(np.max(reach[1]))), reach[1]))
         return reach
 
+    def _vehicle_particles(self, n: int) -> np.ndarray:
+        """(n,) _particles_of(arange(n)): the plan particle of vehicles 0..n-1 (a simulator bank's rows), kept (the map
+        is fixed from the exchange on)."""
+        if self._index_particles is None or self._index_particles.size != n:
+            self._index_particles = self._particles_of(np.arange(n))
+        return self._index_particles
+
     def _claim_rows(self, states: np.ndarray, margin: float) -> np.ndarray:
         """(N,) bool: the vehicles (rows of a bank holding every vehicle, states (N, 4) in id order) whose own plan particle
         is parked (own_slot_claim_max_speed_m_s) with another vehicle within the own-slot claim's radius of it (plus
@@ -469,9 +474,7 @@ class DefaultMFGController(_DefaultBase):
         out = np.zeros(states.shape[0], dtype=bool)
         if not bp.own_slot_claim or self._plan_ids is None or states.shape[0] < 2:
             return out
-        if self._index_particles is None or self._index_particles.size != states.shape[0]:
-            self._index_particles = self._particles_of(np.arange(states.shape[0]))
-        part = self._index_particles
+        part = self._vehicle_particles(states.shape[0])
         p = self.plan.states
         rows = np.flatnonzero(part >= 0)
         pr = p[part[rows]]
@@ -525,15 +528,12 @@ class DefaultMFGController(_DefaultBase):
         the same on every UAV - says where everyone should be; no communication needed), and those
         lost to the plan (_lost)."""
         d = self._distinct(sensed_states, ids)
-        if d is None:
-            # ids missing, or differing states under one id: every entry (_off_plan without its own _distinct)
-            hint = np.asarray(ids, dtype=np.int64) if ids is not None and len(ids) == sensed_states.shape[0] else None
-            return (self._beyond_plan(sensed_states, self.preset.backstop.plan_mismatch_m, hint)
-                    | self._lost(sensed_states, ids))
+        if d is None:           # ids missing, or differing states under one id: every entry
+            return self._off_plan(sensed_states, ids) | self._lost(sensed_states, ids)
         # each sensed vehicle once (many rows sense it, with the same state): both tests per distinct id
         first, inv = d
         q1, i1 = sensed_states[first], np.asarray(ids, dtype=np.int64)[first]
-        return (self._beyond_plan(q1, self.preset.backstop.plan_mismatch_m, i1) | self._lost(q1, i1))[inv]
+        return (self._off_plan(q1, i1) | self._lost(q1, i1))[inv]
 
     def _lost(self, states: np.ndarray, ids: np.ndarray | None) -> np.ndarray:
         """(m,) bool: vehicles farther than ``plan_lost_m`` from their own plan particle (known by their id from the
@@ -634,17 +634,12 @@ class DefaultMFGController(_DefaultBase):
         return first, inv
 
     def _off_plan(self, sensed_states: np.ndarray, ids: np.ndarray | None = None) -> np.ndarray:
-        """_unplanned's distance to the nearest particle (ids: only to query each vehicle once)."""
+        """(m,) bool: _unplanned's state test, entry by entry: farther than plan_mismatch_m from every particle (ids, if
+        given: each entry's own particle as _beyond_plan's hint; _unplanned queries each distinct vehicle once)."""
         if sensed_states.shape[0] == 0:
             return np.zeros(0, dtype=bool)
-        q, mismatch_m = sensed_states, self.preset.backstop.plan_mismatch_m
-        d = self._distinct(q, ids)
-        if d is not None:
-            first, inv = d
-            return self._beyond_plan(q[first], mismatch_m, np.asarray(ids, dtype=np.int64)[first])[inv]
-        if ids is not None and len(ids) == q.shape[0]:
-            return self._beyond_plan(q, mismatch_m, np.asarray(ids, dtype=np.int64))
-        return self._beyond_plan(q, mismatch_m)
+        hint = np.asarray(ids, dtype=np.int64) if ids is not None and len(ids) == sensed_states.shape[0] else None
+        return self._beyond_plan(sensed_states, self.preset.backstop.plan_mismatch_m, hint)
 
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
                          clear_m: float) -> tuple[np.ndarray, np.ndarray]:
