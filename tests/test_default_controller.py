@@ -488,10 +488,10 @@ def _lane_mates(x, a):
     return behind[np.argmax(along[behind])], ahead[np.argmin(along[ahead])]
 
 
-def _lane_in_cruise(preset):
-    """The crossing plan in cruise (N = 50, step 40): (controller bank, plan states, a, b, c, v_hat) for the first UAV
-    a with lane mates behind (b) and ahead (c), v_hat its unit flight direction."""
-    c_ = _controller_in_cruise("crossing", 50, 40, preset=preset)
+def _lane_in_cruise(preset, scenario=("crossing", 50, 40)):
+    """A plan in flight, by default the crossing plan in cruise (N = 50, step 40): (controller bank, plan states, a, b,
+    c, v_hat) for the first UAV a with lane mates behind (b) and ahead (c), v_hat its unit flight direction."""
+    c_ = _controller_in_cruise(*scenario, preset=preset)
     x = c_.plan.states.copy()
     for a in range(x.shape[0]):
         try:
@@ -508,19 +508,32 @@ def _act_once(c_, obs):
     return sensed, c_.act(Observation(40, 40 * DEFAULT.dt_s, obs, None, sensed))
 
 
-def test_two_uavs_off_their_particles_that_close_on_each_other_get_the_gap_push():
-    # given the crossing plan in cruise (a rigid plan, 1.41 m apart), a gust that blew every UAV 1 m sideways, and two
+@pytest.mark.parametrize("scenario,failed", [(("crossing", 50, 40), False), (("dense", 100, 100), True)],
+                         ids=["crossing-cruise", "dense-closing-near-a-failed-vehicle"])
+def test_two_uavs_off_their_particles_that_close_on_each_other_get_the_gap_push(scenario, failed):
+    # given the crossing plan in cruise (a rigid plan, 1.41 m apart), or the dense pad closing into its 0.5 m slots
+    # (0.87 m apart at step 100) with a failed vehicle holding behind it, lost to the plan (dense --fail-vehicle
+    # N = 10,000 seeds 6 and 7: UAVs escaping the failed vehicle ran into lane mates, neither acting, 0.021 / 0.085 m),
+    # a gust that blew every UAV 1 m sideways, and two
     # lane mates a (behind) and c (ahead) of which c was blown 0.35 m further back and 0.1 m further aside and closes
     # on a at 0.65 m/s: each is off the plan the way the other is up to 0.49 m (state metric), so the common-mode check
     # clears it, and each is more than 0.1 m off its own particle, so the planned response is off: neither response
     # covers the pair (the gap; swap4 --gust N = 10,000 seed 8, UAVs 9400 and 9401 closed from 0.55 m to 0.06 m so)
-    def step(preset):
-        c_, x, a, _, c, v_hat = _lane_in_cruise(preset)
+    def step(preset, failed=failed):
+        c_, x, a, _, c, v_hat = _lane_in_cruise(preset, scenario)
         side = np.array([-v_hat[1], v_hat[0]])
         obs = x.copy()
         obs[:, 0:2] += 1.0 * side                                           # the gust: everyone 1 m sideways
         obs[c, 0:2] += -0.35 * v_hat + 0.1 * side
         obs[c, 2:4] -= 0.65 * v_hat
+        if failed:
+            # the failed vehicle q: at rest 1.5 m behind the pad's rear, the vehicle whose particle is farthest from
+            # there (> plan_lost_m), within the sensor range of a and c, in nobody's way
+            behind = obs[a, 0:2] + (np.min((obs[:, 0:2] - obs[a, 0:2]) @ v_hat) - 1.5) * v_hat
+            q = int(np.argmax(np.linalg.norm(x[:, 0:2] - behind, axis=1)))
+            obs[q, 0:2], obs[q, 2:4] = behind, 0.0
+            assert np.linalg.norm(behind - x[q, 0:2]) > preset.backstop.plan_lost_m
+            assert np.linalg.norm(obs[[a, c], 0:2] - behind, axis=1).max() < preset.backstop.sensor_range_m - 1.0
         sensed, info = _act_once(c_, obs)
         return a, c, obs, sensed, c_, np.asarray(info.acc_m_s2)
     off = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, gap_push=False))
@@ -542,9 +555,15 @@ def test_two_uavs_off_their_particles_that_close_on_each_other_get_the_gap_push(
     rel = obs[c] - obs[a]
     n_hat = (rel[0:2] + 1.0 * rel[2:4]) / np.linalg.norm(rel[0:2] + 1.0 * rel[2:4])
     assert (acc_on[c] - acc_on[a]) @ n_hat >= (acc_off[c] - acc_off[a]) @ n_hat - 1e-9
-    # where the particles are closer than gap_push_min_spacing_m, nobody gets it
+    # where the particles are closer than gap_push_min_spacing_m, nobody gets it: unless a failed vehicle is in range
+    # (in the unspread pad a gust alone must not set off reciprocal pushes: dense --gust N = 144 with cruise_spacing_m
+    # = 0, seed 2, 19 collided pairs with them, 1 without)
     cramped = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, gap_push_min_spacing_m=1.5))
-    assert not step(cramped)[4].backstop_active[[a, c]].any()
+    assert step(cramped)[4].backstop_active[[a, c]].all() == failed
+    if failed:
+        assert not step(DEFAULT, failed=False)[4].backstop_active[[a, c]].any()
+        alone = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, gap_push_near_lost=False))
+        assert not step(alone)[4].backstop_active[[a, c]].any()
 
 
 def test_a_uav_off_its_particle_yields_to_one_on_it_that_it_catches_up_with():

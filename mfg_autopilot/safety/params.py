@@ -85,13 +85,16 @@ class BackstopParams:
     # MFG: sensed vehicles that no other response covers (the gap: both off their particles, each near some particle or
     # cleared as common mode) get a reciprocal half-plane push when predicted (over gap_push_horizon_s) closer than
     # gap_push_trigger_fraction x the plan's spacing now, for gap_push_target_fraction x it; only while that spacing
-    # is at least gap_push_min_spacing_m. docs/default_controller.md, "The gap push"
+    # is at least gap_push_min_spacing_m, or (gap_push_near_lost) for a row that senses a vehicle lost to the plan
+    # (plan_lost_m: a failed one; the escapes around it open gaps in the closing pad). docs/default_controller.md,
+    # "The gap push"
     gap_push: bool = True
     gap_push_trigger_fraction: float = 0.35
     gap_push_target_fraction: float = 0.45
     gap_push_share: float = 0.5
     gap_push_horizon_s: float = 1.0
     gap_push_min_spacing_m: float = 1.0
+    gap_push_near_lost: bool = True
     escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
