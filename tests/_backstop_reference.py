@@ -83,7 +83,8 @@ def _segment_min(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
-               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float) -> tuple[np.ndarray, np.ndarray]:
+               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
+               side_pref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -191,6 +192,10 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         along = np.einsum("rd,rd->r", da_c, v_hat)
         effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
         cost = pen_best + bp.escape_effort * effort
+        if side_pref is not None:
+            # (ninth session) the side the row escaped to at the previous step
+            side_r = side_pref[rows]
+            cost = cost + bp.escape_side_commit * np.maximum(0.0, -(side_r[:, 0] * a1[:, 0] + side_r[:, 1] * a1[:, 1])) / a_max
         better = cost < best
         best = np.where(better, cost, best)
         a_out[rows[better]] = a1[better]

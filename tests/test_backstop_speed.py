@@ -47,6 +47,7 @@ def _params(rng: np.random.Generator) -> BackstopParams:
         kw["escape_urgency"] = bool(rng.random() < 0.5)
         kw["escape_directions"] = int(rng.choice([8, 16, 24]))
         kw["escape_keep_right"] = float(rng.choice([0.0, 2.0]))
+        kw["escape_side_commit"] = float(rng.choice([0.0, 1.0, 3.0]))
         kw["escape_lateral_cost"] = float(rng.choice([1.0, 3.0]))
         kw["escape_planned_weight"] = float(rng.choice([1.0, 0.5]))
     return dataclasses.replace(BackstopParams(), **kw)
@@ -64,8 +65,13 @@ def test_escape_acc_is_bit_identical_to_the_numpy_version(seed):
         trig = np.where(threat, rng.choice([0.25, 0.6], m), rng.choice([0.0, 0.15], m))
         clear = np.where(threat, 0.8, rng.choice([0.2, 0.5], m))
         commit = float(rng.choice([0.5, 0.25, 3.0]))
-        a_new, act_new = backstop.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit)
-        a_ref, act_ref = ref.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit)
+        # the side each row escaped to at the previous step (a unit vector across its track, or none)
+        side = None
+        if rng.random() < 0.5:
+            ang = rng.uniform(0, 2 * np.pi, own.shape[0])
+            side = np.stack([np.cos(ang), np.sin(ang)], axis=1) * (rng.random(own.shape[0]) < 0.6)[:, None]
+        a_new, act_new = backstop.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit, side)
+        a_ref, act_ref = ref.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit, side)
         assert np.array_equal(act_new, act_ref)
         assert np.array_equal(a_new, a_ref), (a_new, a_ref)
         acted += int(act_ref.sum())
@@ -99,7 +105,7 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
 # the gap push (seventh; their own tests are in tests/test_default_controller.py): compared with the four off
 AS_REFERENCE = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                          unplanned_flow_m_s=0.0, escape_yield=False,
-                                                                         gap_push=False))
+                                                                         gap_push=False, escape_side_commit=0.0))
 
 
 def _controller(scenario: str, n: int, rows: np.ndarray, seed: int):

@@ -613,3 +613,49 @@ def test_particles_of_maps_each_exchanged_id_to_its_particle_by_table_or_binary_
         # then each id gets the particle of its first place in the exchange, every other id -1
         assert c._particles_of(probe).tolist() == [first.get(i, -1) for i in probe.tolist()]
     assert tables == [True, True, False]
+
+
+def test_the_escape_passes_a_hovering_vehicle_on_the_side_of_its_own_lane():
+    # given a UAV flying 4 m/s straight at a vehicle hovering 3 m ahead, 2 cm off its line (a failed vehicle nearly
+    # head-on: dense --fail-vehicle N = 5,000 seed 24, UAV 1228 swerved +0.47, -0.84, +1.97, -1.93 m/s^2 across its
+    # track on four consecutive steps and passed the failed vehicle at 0.094 m)
+    on = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, escape_side_commit=1.0))
+    bp = on.backstop
+    own = np.array([[0.0, 0.0, 4.0, 0.0]])
+    sensed = np.array([[3.0, 0.02, 0.0, 0.0]])
+    args = (own, np.zeros((1, 2)), sensed, np.array([0]), np.array([True]), np.array([0.6]), np.array([0.8]), bp, 0.5)
+    free, act = escape_acc(*args)
+    assert act[0] and abs(free[0, 1]) > 0.5                           # it escapes sideways
+    # when told the side (its lane's), it passes on that side, whichever it is
+    for side in (1.0, -1.0):
+        a, act = escape_acc(*args, side_pref=np.array([[0.0, side]]))
+        assert act[0] and a[0, 1] * side > 0.5, (side, a)
+    # without the preference (escape_side_commit = 0) the side given is ignored
+    off = dataclasses.replace(bp, escape_side_commit=0.0)
+    a_off, _ = escape_acc(*args[:-2], off, 0.5, side_pref=np.array([[0.0, -np.sign(free[0, 1])]]))
+    np.testing.assert_array_equal(a_off, free)
+    # the controller takes the side from the plan: in the dense pad in cruise, a vehicle failed in Hold 0.3 m left of
+    # the lane of a and 2.5 m ahead of it; a passes it on the right, and every row within range of it on the side its
+    # own particle's lane lies on (lanes left of it on the left): the lanes split around it
+    c_, x, a, _, c, v_hat = _lane_in_cruise(on, ("dense", 100, 40))
+    left = np.array([-v_hat[1], v_hat[0]])
+    obs = x.copy()
+    obs[c, 0:2] = x[a, 0:2] + 2.5 * v_hat + 0.3 * left
+    obs[c, 2:4] = 0.0
+    sensed, _ = _act_once(c_, obs)
+    unpl = c_._unplanned(sensed.states, sensed.ids)
+    assert unpl[(sensed.owner == a) & (sensed.ids == c)].all()
+    side = c_._escape_side(obs, sensed, unpl)
+    np.testing.assert_allclose(side[a], -left, atol=1e-9)
+    rows = np.unique(sensed.owner[unpl & (sensed.ids == c)])
+    rows = rows[rows != c]
+    lane_left = (x[rows, 0:2] - obs[c, 0:2]) @ left > 0                 # every particle flies along v_hat here
+    np.testing.assert_allclose(side[rows], np.where(lane_left[:, None], left, -left), atol=1e-9)
+    assert lane_left.any() and (~lane_left).any()
+    # a row that senses no hovering vehicle gets none
+    far = np.flatnonzero(np.linalg.norm(obs[:, 0:2] - obs[c, 0:2], axis=1) > DEFAULT.backstop.sensor_range_m + 0.5)
+    assert far.size and not side[far].any()
+    # off by default (escape_side_commit = 0: measured on a few seeds only): no side
+    c_off = _lane_in_cruise(DEFAULT, ("dense", 100, 40))[0]
+    _act_once(c_off, obs)
+    assert c_off._escape_side(obs, sensed, unpl) is None

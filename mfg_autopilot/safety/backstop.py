@@ -104,7 +104,7 @@ def _escape_args(bp: BackstopParams, commit_s: float) -> tuple:
     return (g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
             float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
             bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
-            g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2)
+            g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2, float(bp.escape_side_commit))
 
 
 def _directions(k: int) -> np.ndarray:
@@ -113,7 +113,8 @@ def _directions(k: int) -> np.ndarray:
 
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
-               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float) -> tuple[np.ndarray, np.ndarray]:
+               trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
+               side_pref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -133,7 +134,9 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
 
     w_e = escape_threat_weight (threat) or escape_planned_weight: the escape keeps clear of every
     sensed vehicle, not only of the threat; u_e = tau_min / max(t of the approach, tau_min)
-    (urgency). Rows that are not active keep a_nom. Returns (command (n, 2), active (n,)).
+    (urgency). Rows that are not active keep a_nom. side_pref (n, 2), optional: per row a unit vector across its track
+    (or 0); a candidate a_1 against it adds escape_side_commit max(0, -side_pref . a_1) / a_max to the cost (the side a
+    row passes a hovering vehicle on, guidance.controller._escape_side). Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
     active = np.zeros(n, dtype=bool)
@@ -145,7 +148,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     a_out, active = backstop_kernels.escape_rows(
         np.ascontiguousarray(own, dtype=float), a_out, np.ascontiguousarray(sensed_states, dtype=float),
         np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
-        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s))
+        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s),
+        np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

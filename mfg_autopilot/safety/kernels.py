@@ -95,7 +95,7 @@ def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
 @njit(cache=True)
 def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed, a_nom_r,
                       v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den, effort_w, lateral_cost,
-                      a_max2):
+                      a_max2, side_r, side_w, a_max):
     """The escape's choice of first-phase command per active row: (a_1 (r, 2), chosen (r,) bool).
 
     rel (m', T + 1, 2): constant-velocity tracks relative to the own coasting vehicle; rel_b (m_b, T + 1, 2) the
@@ -103,6 +103,8 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     conflict (m',) bool and left (m', 2): the keep-right term; alpha, beta (T + 1,): the own displacement
     alpha a_1 + beta a_2; t_seg (T,) the segments' end times; cand_fixed (C - 1, 2): the candidates after a_nom;
     a_nom_r, v_hat (r, 2). keep_right_den = 0.5 t[-1]^2 a_max, a_max2 = a_max^2 (as the numpy code computes them).
+    side_r (r, 2): the side the row escaped to at the previous control step (a unit vector across its track, or 0);
+    a candidate against it costs side_w max(0, -side_r . a_1) / a_max (the escape keeps the side it chose).
     chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom)."""
     m = rel.shape[0]
     r = a_nom_r.shape[0]
@@ -168,6 +170,7 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
             along = dax * v_hat[i, 0] + day * v_hat[i, 1]
             effort = (along * along + lateral_cost * ((dax * dax + day * day) - along * along)) / a_max2
             cost = pen_best[i] + effort_w * effort
+            cost = cost + side_w * _max(0.0, -(side_r[i, 0] * a1[i, 0] + side_r[i, 1] * a1[i, 1])) / a_max
             if cost < best[i]:
                 best[i] = cost
                 a_out[i, 0] = a1[i, 0]
@@ -204,7 +207,7 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
 @njit(cache=True)
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
-                keep_right, keep_right_den, effort_w, lateral_cost, a_max2):
+                keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, side_pref):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
     least one threat. Same operations, in the same order, as the numpy code (module docstring)."""
     n = own.shape[0]
@@ -305,10 +308,13 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         conflict[q] = (dn < clear[q]) and (un > u_noise_m_s)
     a_nom_r = np.empty((r, 2))
     v_hat = np.empty((r, 2))
+    side_r = np.empty((r, 2))
     for k in range(r):
         i = rows[k]
         a_nom_r[k, 0] = a_nom[i, 0]
         a_nom_r[k, 1] = a_nom[i, 1]
+        side_r[k, 0] = side_pref[i, 0]
+        side_r[k, 1] = side_pref[i, 1]
         vx = own[i, 2]
         vy = own[i, 3]
         vn = math.sqrt(vx * vx + vy * vy)
@@ -320,7 +326,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             v_hat[k, 1] = 0.0
     a_best, chosen = escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed,
                                        a_nom_r, v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den,
-                                       effort_w, lateral_cost, a_max2)
+                                       effort_w, lateral_cost, a_max2, side_r, side_w, a_max)
     for k in range(r):
         if chosen[k]:
             a_out[rows[k], 0] = a_best[k, 0]

@@ -70,6 +70,13 @@ class BackstopParams:
     escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
     escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
     escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
+    # MFG: a row escaping a vehicle off the plan that hovers (slower than u_noise_m_s: failed in Hold) passes it on the
+    # side its own particle's lane lies on (from the plan, which every UAV shares, so the lanes split around it the same
+    # way for all): a candidate across the track towards the other side costs escape_side_commit x its lateral share of
+    # a_max (measured: UAVs coming up to a failed vehicle nearly head-on swerved to alternate sides on consecutive steps
+    # and passed it at 0.02-0.1 m). Off (0): measured on a few seeds only, partial (docs/default_controller.md, "Where it
+    # does not hold yet", ninth session); 1.0 is the value measured
+    escape_side_commit: float = 0.0
     escape_max_unplanned_fraction: float = 0.5   # a row sensing a larger share of off-plan vehicles gets the half-plane push
     escape_gap: bool = False          # also escape below the planned trigger from vehicles neither response covers (measured on one case only, slow: off)
     # MFG: a UAV off its own particle by more than escape_yield_min_dev_m yields to a sensed vehicle that neither
