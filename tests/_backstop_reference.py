@@ -193,7 +193,7 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
         cost = pen_best + bp.escape_effort * effort
         if side_pref is not None:
-            # (ninth session) the side the row escaped to at the previous step
+            # (ninth session) the side the row passes a hovering vehicle on (escape_side_commit)
             side_r = side_pref[rows]
             cost = cost + bp.escape_side_commit * np.maximum(0.0, -(side_r[:, 0] * a1[:, 0] + side_r[:, 1] * a1[:, 1])) / a_max
         better = cost < best

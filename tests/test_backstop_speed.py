@@ -65,7 +65,7 @@ def test_escape_acc_is_bit_identical_to_the_numpy_version(seed):
         trig = np.where(threat, rng.choice([0.25, 0.6], m), rng.choice([0.0, 0.15], m))
         clear = np.where(threat, 0.8, rng.choice([0.2, 0.5], m))
         commit = float(rng.choice([0.5, 0.25, 3.0]))
-        # the side each row escaped to at the previous step (a unit vector across its track, or none)
+        # the side each row passes a hovering vehicle on (a unit vector across its track, or none)
         side = None
         if rng.random() < 0.5:
             ang = rng.uniform(0, 2 * np.pi, own.shape[0])

@@ -103,8 +103,8 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     conflict (m',) bool and left (m', 2): the keep-right term; alpha, beta (T + 1,): the own displacement
     alpha a_1 + beta a_2; t_seg (T,) the segments' end times; cand_fixed (C - 1, 2): the candidates after a_nom;
     a_nom_r, v_hat (r, 2). keep_right_den = 0.5 t[-1]^2 a_max, a_max2 = a_max^2 (as the numpy code computes them).
-    side_r (r, 2): the side the row escaped to at the previous control step (a unit vector across its track, or 0);
-    a candidate against it costs side_w max(0, -side_r . a_1) / a_max (the escape keeps the side it chose).
+    side_r (r, 2): the side the row passes a hovering vehicle on (a unit vector across its track, or 0);
+    a candidate against it costs side_w max(0, -side_r . a_1) / a_max (guidance.controller._escape_side).
     chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom)."""
     m = rel.shape[0]
     r = a_nom_r.shape[0]

@@ -74,8 +74,8 @@ class BackstopParams:
     # side its own particle's lane lies on (from the plan, which every UAV shares, so the lanes split around it the same
     # way for all): a candidate across the track towards the other side costs escape_side_commit x its lateral share of
     # a_max (measured: UAVs coming up to a failed vehicle nearly head-on swerved to alternate sides on consecutive steps
-    # and passed it at 0.02-0.1 m). Off (0): measured on a few seeds only, partial (docs/default_controller.md, "Where it
-    # does not hold yet", ninth session); 1.0 is the value measured
+    # and passed it at 0.02-0.1 m). Off (0): with 1.0, dense --fail-vehicle N = 5,000 seed 24 lost its collided pair
+    # but N = 10,000 seed 9 got 2 (docs/default_controller.md, "Where it does not hold yet", ninth session)
     escape_side_commit: float = 0.0
     escape_max_unplanned_fraction: float = 0.5   # a row sensing a larger share of off-plan vehicles gets the half-plane push
     escape_gap: bool = False          # also escape below the planned trigger from vehicles neither response covers (measured on one case only, slow: off)
