@@ -84,7 +84,7 @@ def _segment_min(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
-               side_pref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               side_pref: np.ndarray | None = None, coast: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -133,6 +133,9 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     rel_t, rel_tb = rel_tracks(ti)
     own_nom = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ti]][:, None, :]
     dmin_nom = np.minimum(_segment_min(rel_t - own_nom)[0], _segment_min(rel_tb - own_nom)[0])
+    if coast is not None:   # (tenth session) coasting too, for the marked entries
+        c = coast[ti]
+        dmin_nom = np.where(c, np.minimum(dmin_nom, np.minimum(_segment_min(rel_t)[0], _segment_min(rel_tb)[0])), dmin_nom)
     hit = dmin_nom < trigger_m[ti]
     active[np.unique(owner[ti[hit]])] = True
     if not np.any(active):

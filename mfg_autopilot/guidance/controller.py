@@ -243,6 +243,10 @@ class _DefaultBase:
             sp = self._spacing_m()
             u_trig, u_clear = min(bp.unplanned_trigger_m, 0.5 * sp), min(bp.unplanned_target_m, 0.6 * sp)
             e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
+            if bp.unplanned_hover_clear_now:
+                # a hovering vehicle off the plan (failed in Hold): the clearance by the spacing flown now
+                hv = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
+                e_clear[hv] = np.maximum(e_clear[hv], min(bp.unplanned_target_m, 0.6 * self._spacing_now_m()))
             # the escape is a backstop for a few off-plan vehicles; a row that senses mostly off-plan vehicles (the
             # swarm has lost its plan) gets the single half-plane push instead (measured: with every UAV off the
             # plan, escaping from all neighbours at once swerved UAVs into each other in the 0.5 m formation)
@@ -263,9 +267,12 @@ class _DefaultBase:
                 trig = np.where(threat, e_trig, np.where(yl, y_trig, np.where(gap, bp.trigger_m, 0.0)))
                 clear = np.where(unplanned, e_clear,
                                  np.where(yl, y_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp)))
+                # coasting also wakes the escape against a hovering threat (BackstopParams.escape_trigger_coast)
+                coast = (threat & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
+                         if bp.escape_trigger_coast else None)
                 threat = threat | gap | yl
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, unplanned & threat))
+                                        self.preset.dt_s, self._escape_side(own, sn, unplanned & threat), coast)
             if np.any(push):
                 # with the escape's reach per entry: a crowded row (most of its neighbours blown off the plan) pushed
                 # with the large reach (0.6 / 0.8 m) against neighbours that move with the flow was shoved about in
@@ -309,6 +316,7 @@ class DefaultMFGController(_DefaultBase):
         self.plan: MeanFieldPlan | RigidPlan | None = None
         self._plan_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its particles), _plan_distance
         self._flow_tree: tuple[int, cKDTree] | None = None      # (plan step, k-d tree of its positions), _unplanned_reach
+        self._side_mem: tuple[np.ndarray, np.ndarray] | None = None     # (threat id, side (n, 2)) per row: _escape_side
         ps = p.backstop.plan_mismatch_s
         self._plan_metric_w = np.array([1.0, 1.0, ps, ps])      # _plan_distance's metric weights
         self.own_index = np.zeros(self.n, dtype=np.int64)
@@ -341,7 +349,7 @@ class DefaultMFGController(_DefaultBase):
                 # _particles_of's table; filled last to first, so that a repeated id keeps its first particle
                 self._id_table = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
                 self._id_table[ids[::-1]] = np.arange(ids.size - 1, -1, -1, dtype=np.int64)
-        self._plan_tree, self._flow_tree = None, None
+        self._plan_tree, self._flow_tree, self._side_mem = None, None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev = None, None, None
         self._plan_v_hist, self._cutoff_hist = {}, {}
@@ -593,13 +601,15 @@ class DefaultMFGController(_DefaultBase):
         return out
 
     def _escape_side(self, own: np.ndarray, sn: Neighbours, threat: np.ndarray) -> np.ndarray | None:
-        """(n, 2): for a row with a threat entry that hovers (slower than ``u_noise_m_s``: a vehicle failed in Hold), the
+        """(n, 2): for a row with a threat entry that hovers (slower than ``hover_max_speed_m_s``: failed in Hold, drifting), the
         unit vector across its own particle's track on the side of that track the nearest such vehicle is *not* on; 0
         for the other rows; None when there is none (backstop.escape_acc: a candidate towards the other side costs
         ``escape_side_commit`` x its lateral share of a_max). From the plan, not from the UAV's state: every UAV's
         particle flies a lane, the lanes left of the failed vehicle pass it on the left and those right of it on the
         right, the same for lane mates ahead and behind, whatever the noise does to each UAV's own state; a lane right
-        through it passes on the right (as the keep-right term).
+        through it passes on the right (as the keep-right term). With ``escape_side_memory`` the side chosen at a row's
+        first meeting with a vehicle (by id) is kept while that vehicle is the row's nearest hovering one: a failed
+        vehicle drifts in the wind, 0.2-0.3 m across the lanes, and a lane a few centimetres off it would swap sides.
 
         Why: a UAV coming up to a failed vehicle nearly head-on chose a side at one step and the other at the next: in
         dense --fail-vehicle N = 5,000 seed 24, UAV 1228 commanded +0.47, -0.84, +1.97, -1.93 m/s^2 across its track on
@@ -608,7 +618,7 @@ class DefaultMFGController(_DefaultBase):
         if bp.escape_side_commit <= 0 or self.plan is None:
             return None
         v = sn.states[:, 2:4]
-        idx = np.flatnonzero(threat & (v[:, 0] ** 2 + v[:, 1] ** 2 < bp.u_noise_m_s ** 2))
+        idx = np.flatnonzero(threat & (v[:, 0] ** 2 + v[:, 1] ** 2 < bp.hover_max_speed_m_s ** 2))
         if idx.size == 0:
             return None
         rows = sn.owner[idx]
@@ -623,6 +633,18 @@ class DefaultMFGController(_DefaultBase):
         across = np.stack([-vp[:, 1], vp[:, 0]], axis=1) / np.maximum(vn, 1e-12)[:, None]     # left of the track
         cross = np.sum((part[:, 0:2] - q) * across, axis=1)          # > 0: the lane lies left of the vehicle
         side = np.where((cross > 0)[:, None], across, -across) * (vn > bp.u_noise_m_s)[:, None]
+        if bp.escape_side_memory and sn.ids is not None:
+            # the side chosen when the row first met that vehicle, kept while it is the nearest hovering one (a failed
+            # vehicle drifts in the wind: a lane 5 cm off it would otherwise swap sides under it)
+            if self._side_mem is None:
+                self._side_mem = (np.full(self.n, -1, dtype=np.int64), np.zeros((self.n, 2)))
+            mem_id, mem_side = self._side_mem
+            tid = sn.ids[idx[first]]
+            keep = (mem_id[r] == tid) & np.any(mem_side[r] != 0, axis=1)
+            # the remembered side as a sign across the current track (the track turns slowly; the sign is what is kept)
+            sgn = np.sign(np.sum(mem_side[r] * across, axis=1))
+            side = np.where((keep & (sgn != 0))[:, None], sgn[:, None] * across * (vn > bp.u_noise_m_s)[:, None], side)
+            mem_id[r], mem_side[r] = tid, side
         out = np.zeros((self.n, 2))
         out[r] = side
         return out

@@ -114,7 +114,7 @@ def _directions(k: int) -> np.ndarray:
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
-               side_pref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               side_pref: np.ndarray | None = None, coast: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -136,7 +136,10 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     sensed vehicle, not only of the threat; u_e = tau_min / max(t of the approach, tau_min)
     (urgency). Rows that are not active keep a_nom. side_pref (n, 2), optional: per row a unit vector across its track
     (or 0); a candidate a_1 against it adds escape_side_commit max(0, -side_pref . a_1) / a_max to the cost (the side a
-    row passes a hovering vehicle on, guidance.controller._escape_side). Returns (command (n, 2), active (n,)).
+    row passes a hovering vehicle on, guidance.controller._escape_side). coast (m,) bool, optional: a threat entry marked
+    also activates its row if the own vehicle *coasting* (a = 0 over the horizon) would bring it below its trigger (the
+    nominal command's momentary tracking correction, held for 2 s, predicts misses the UAV does not make; the controller
+    marks the hovering threats, BackstopParams.escape_trigger_coast). Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
     active = np.zeros(n, dtype=bool)
@@ -149,7 +152,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         np.ascontiguousarray(own, dtype=float), a_out, np.ascontiguousarray(sensed_states, dtype=float),
         np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
         np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s),
-        np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float))
+        np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float),
+        np.zeros(sensed_states.shape[0], dtype=bool) if coast is None else np.ascontiguousarray(coast, dtype=bool))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

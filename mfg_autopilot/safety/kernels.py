@@ -207,9 +207,10 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
 @njit(cache=True)
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
-                keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, side_pref):
+                keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, side_pref, coast):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
-    least one threat. Same operations, in the same order, as the numpy code (module docstring)."""
+    least one threat. Same operations, in the same order, as the numpy code (module docstring). coast (m,) bool: a row
+    is also active if coasting (a = 0 over the horizon) brings such a threat entry below its trigger."""
     n = own.shape[0]
     m = sensed_states.shape[0]
     T1 = t.shape[0]
@@ -248,7 +249,12 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         o = owner[ti[j]]
         d1, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
         d2, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
-        if _min(d1, d2) < trigger_m[ti[j]]:
+        dn = _min(d1, d2)
+        if coast[ti[j]]:
+            d3, _ = _segment_min_one(rel_t, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
+            d4, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
+            dn = _min(dn, _min(d3, d4))
+        if dn < trigger_m[ti[j]]:
             active[o] = True
     r = 0
     pos = np.full(n, -1, dtype=np.int64)

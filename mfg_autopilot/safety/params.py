@@ -70,13 +70,25 @@ class BackstopParams:
     escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
     escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
     escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
-    # MFG: a row escaping a vehicle off the plan that hovers (slower than u_noise_m_s: failed in Hold) passes it on the
-    # side its own particle's lane lies on (from the plan, which every UAV shares, so the lanes split around it the same
-    # way for all): a candidate across the track towards the other side costs escape_side_commit x its lateral share of
-    # a_max (measured: UAVs coming up to a failed vehicle nearly head-on swerved to alternate sides on consecutive steps
-    # and passed it at 0.02-0.1 m). Off (0): with 1.0, dense --fail-vehicle N = 5,000 seed 24 lost its collided pair
-    # but N = 10,000 seed 9 got 2 (docs/default_controller.md, "Where it does not hold yet", ninth session)
-    escape_side_commit: float = 0.0
+    # MFG, against a vehicle off the plan that hovers (slower than hover_max_speed_m_s: failed in Hold, drifting in the
+    # wind), four rules that hold only together (docs/default_controller.md, "Where it does not hold yet", tenth session):
+    # - the lane side: a row escaping it passes it on the side its own particle's lane lies on (from the plan, which
+    #   every UAV shares, so the lanes split around it the same way for all): a candidate across the track towards the
+    #   other side costs escape_side_commit x its lateral share of a_max (UAVs coming up to it nearly head-on swerved to
+    #   alternate sides on consecutive steps and passed it at 0.09 m);
+    # - escape_side_memory: the side chosen at a row's first meeting with that vehicle is kept while it is the row's
+    #   nearest hovering one (the vehicle drifts; a lane 5 cm off it would otherwise swap sides under it);
+    # - unplanned_hover_clear_now: the clearance from it is min(unplanned_target_m, 0.6 x the plan's spacing *now*),
+    #   not the slot-sized 0.3 m of the 0.5 m pad (the pad flies 1.1-1.4 m apart in cruise);
+    # - escape_trigger_coast: a row is also active if *coasting* (a = 0 over the horizon) brings it below its trigger,
+    #   not only its nominal command held (a momentary tracking correction held for 2 s predicted a 0.5 m miss of a
+    #   vehicle the UAV then passed at 0.09 m; the escape acted 1 s before the pass). Only against a hovering vehicle:
+    #   for every unplanned one, the unspread pad in a gust (a UAV fights the gust, coasting drifts) went 1 -> 4 pairs.
+    escape_side_commit: float = 1.0
+    escape_side_memory: bool = True
+    hover_max_speed_m_s: float = 1.0
+    unplanned_hover_clear_now: bool = True
+    escape_trigger_coast: bool = True
     escape_max_unplanned_fraction: float = 0.5   # a row sensing a larger share of off-plan vehicles gets the half-plane push
     escape_gap: bool = False          # also escape below the planned trigger from vehicles neither response covers (measured on one case only, slow: off)
     # MFG: a UAV off its own particle by more than escape_yield_min_dev_m yields to a sensed vehicle that neither
