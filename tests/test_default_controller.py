@@ -615,6 +615,12 @@ def test_particles_of_maps_each_exchanged_id_to_its_particle_by_table_or_binary_
     assert tables == [True, True, False]
 
 
+def _hover(sensed, unplanned):
+    """The controller's hovering threats: unplanned and slower than hover_max_speed_m_s (_DefaultBase._backstop)."""
+    v = sensed.states[:, 2:4]
+    return unplanned & (v[:, 0] ** 2 + v[:, 1] ** 2 < DEFAULT.backstop.hover_max_speed_m_s ** 2)
+
+
 def test_the_escape_passes_a_hovering_vehicle_on_the_side_of_its_own_lane():
     # given a UAV flying 4 m/s straight at a vehicle hovering 3 m ahead, 2 cm off its line (a failed vehicle nearly
     # head-on: dense --fail-vehicle N = 5,000 seed 24, UAV 1228 swerved +0.47, -0.84, +1.97, -1.93 m/s^2 across its
@@ -645,7 +651,7 @@ def test_the_escape_passes_a_hovering_vehicle_on_the_side_of_its_own_lane():
     sensed, _ = _act_once(c_, obs)
     unpl = c_._unplanned(sensed.states, sensed.ids)
     assert unpl[(sensed.owner == a) & (sensed.ids == c)].all()
-    side = c_._escape_side(obs, sensed, unpl)
+    side = c_._escape_side(obs, sensed, _hover(sensed, unpl))
     np.testing.assert_allclose(side[a], -left, atol=1e-9)
     rows = np.unique(sensed.owner[unpl & (sensed.ids == c)])
     rows = rows[rows != c]
@@ -659,7 +665,7 @@ def test_the_escape_passes_a_hovering_vehicle_on_the_side_of_its_own_lane():
     off_p = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, escape_side_commit=0.0))
     c_off = _lane_in_cruise(off_p, ("dense", 100, 40))[0]
     _act_once(c_off, obs)
-    assert c_off._escape_side(obs, sensed, unpl) is None
+    assert c_off._escape_side(obs, sensed, _hover(sensed, unpl)) is None
 
 
 @pytest.mark.parametrize("memory", [True, False])
@@ -679,7 +685,7 @@ def test_the_lane_side_is_kept_while_the_failed_vehicle_drifts_across_the_lane(m
         sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c_.sensor_range_m, output_type="ndarray"))
         unpl = c_._unplanned(sensed.states, sensed.ids)
         assert unpl[(sensed.owner == a) & (sensed.ids == c)].all()
-        sides.append(c_._escape_side(obs, sensed, unpl)[a])
+        sides.append(c_._escape_side(obs, sensed, _hover(sensed, unpl))[a])
     # then the side first chosen (right of the vehicle 5 cm left of the lane) is kept with the memory, and flips
     # under the drifting vehicle without it
     np.testing.assert_allclose(sides[0], -left, atol=1e-9)
@@ -692,7 +698,7 @@ def test_the_lane_side_is_kept_while_the_failed_vehicle_drifts_across_the_lane(m
         sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(c_.sensor_range_m, output_type="ndarray"))
         sensed = Neighbours(sensed.states, sensed.owner, ids[sensed.ids])
         unpl = np.isin(sensed.ids, [10 ** 6])
-        np.testing.assert_allclose(c_._escape_side(obs, sensed, unpl)[a], left, atol=1e-9)
+        np.testing.assert_allclose(c_._escape_side(obs, sensed, _hover(sensed, unpl))[a], left, atol=1e-9)
 
 
 def test_the_escape_also_acts_when_coasting_would_hit_a_hovering_vehicle():

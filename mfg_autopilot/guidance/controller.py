@@ -179,7 +179,7 @@ class _DefaultBase:
         already get a response."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
-    def _escape_side(self, own: np.ndarray, sn: Neighbours, threat: np.ndarray) -> np.ndarray | None:
+    def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray) -> np.ndarray | None:
         """(n, 2) the side each row passes a hovering vehicle off the plan on (MFG; HJB_d: None, nothing is off it)."""
         return None
 
@@ -243,10 +243,11 @@ class _DefaultBase:
             sp = self._spacing_m()
             u_trig, u_clear = min(bp.unplanned_trigger_m, 0.5 * sp), min(bp.unplanned_target_m, 0.6 * sp)
             e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
+            # a hovering vehicle off the plan (failed in Hold, drifting): the rules of BackstopParams.hover_max_speed_m_s
+            hover = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
             if bp.unplanned_hover_clear_now:
-                # a hovering vehicle off the plan (failed in Hold): the clearance by the spacing flown now
-                hv = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
-                e_clear[hv] = np.maximum(e_clear[hv], min(bp.unplanned_target_m, 0.6 * self._spacing_now_m()))
+                # its clearance by the spacing flown now
+                e_clear[hover] = np.maximum(e_clear[hover], min(bp.unplanned_target_m, 0.6 * self._spacing_now_m()))
             # the escape is a backstop for a few off-plan vehicles; a row that senses mostly off-plan vehicles (the
             # swarm has lost its plan) gets the single half-plane push instead (measured: with every UAV off the
             # plan, escaping from all neighbours at once swerved UAVs into each other in the 0.5 m formation)
@@ -268,11 +269,11 @@ class _DefaultBase:
                 clear = np.where(unplanned, e_clear,
                                  np.where(yl, y_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp)))
                 # coasting also wakes the escape against a hovering threat (BackstopParams.escape_trigger_coast)
-                coast = (threat & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
-                         if bp.escape_trigger_coast else None)
+                hover_threat = threat & hover
                 threat = threat | gap | yl
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, unplanned & threat), coast)
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat),
+                                        hover_threat if bp.escape_trigger_coast else None)
             if np.any(push):
                 # with the escape's reach per entry: a crowded row (most of its neighbours blown off the plan) pushed
                 # with the large reach (0.6 / 0.8 m) against neighbours that move with the flow was shoved about in
@@ -600,9 +601,9 @@ class DefaultMFGController(_DefaultBase):
         out[idx] = np.hypot(dr[:, 0], dr[:, 1]) < bp.escape_yield_on_plan_m
         return out
 
-    def _escape_side(self, own: np.ndarray, sn: Neighbours, threat: np.ndarray) -> np.ndarray | None:
-        """(n, 2): for a row with a threat entry that hovers (slower than ``hover_max_speed_m_s``: failed in Hold, drifting), the
-        unit vector across its own particle's track on the side of that track the nearest such vehicle is *not* on; 0
+    def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray) -> np.ndarray | None:
+        """(n, 2): for a row with a threat entry that hovers (hover_threat (m,): slower than ``hover_max_speed_m_s``, failed in
+        Hold, drifting), the unit vector across its own particle's track on the side of that track the nearest such vehicle is *not* on; 0
         for the other rows; None when there is none (backstop.escape_acc: a candidate towards the other side costs
         ``escape_side_commit`` x its lateral share of a_max). From the plan, not from the UAV's state: every UAV's
         particle flies a lane, the lanes left of the failed vehicle pass it on the left and those right of it on the
@@ -617,8 +618,7 @@ class DefaultMFGController(_DefaultBase):
         bp = self.preset.backstop
         if bp.escape_side_commit <= 0 or self.plan is None:
             return None
-        v = sn.states[:, 2:4]
-        idx = np.flatnonzero(threat & (v[:, 0] ** 2 + v[:, 1] ** 2 < bp.hover_max_speed_m_s ** 2))
+        idx = np.flatnonzero(hover_threat)
         if idx.size == 0:
             return None
         rows = sn.owner[idx]
@@ -632,7 +632,8 @@ class DefaultMFGController(_DefaultBase):
         vn = np.hypot(vp[:, 0], vp[:, 1])
         across = np.stack([-vp[:, 1], vp[:, 0]], axis=1) / np.maximum(vn, 1e-12)[:, None]     # left of the track
         cross = np.sum((part[:, 0:2] - q) * across, axis=1)          # > 0: the lane lies left of the vehicle
-        side = np.where((cross > 0)[:, None], across, -across) * (vn > bp.u_noise_m_s)[:, None]
+        moving = (vn > bp.u_noise_m_s)[:, None]                      # a parked particle has no track: no side
+        side = np.where((cross > 0)[:, None], across, -across) * moving
         if bp.escape_side_memory and sn.ids is not None:
             # the side chosen when the row first met that vehicle, kept while it is the nearest hovering one (a failed
             # vehicle drifts in the wind: a lane 5 cm off it would otherwise swap sides under it)
@@ -643,7 +644,7 @@ class DefaultMFGController(_DefaultBase):
             keep = (mem_id[r] == tid) & np.any(mem_side[r] != 0, axis=1)
             # the remembered side as a sign across the current track (the track turns slowly; the sign is what is kept)
             sgn = np.sign(np.sum(mem_side[r] * across, axis=1))
-            side = np.where((keep & (sgn != 0))[:, None], sgn[:, None] * across * (vn > bp.u_noise_m_s)[:, None], side)
+            side = np.where((keep & (sgn != 0))[:, None], sgn[:, None] * across * moving, side)
             mem_id[r], mem_side[r] = tid, side
         out = np.zeros((self.n, 2))
         out[r] = side
