@@ -84,7 +84,7 @@ def _segment_min(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
-               side_pref: np.ndarray | None = None, coast: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               side_pref: np.ndarray | None = None, hover: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -133,8 +133,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     rel_t, rel_tb = rel_tracks(ti)
     own_nom = (0.5 * t ** 2)[None, :, None] * a_nom[owner[ti]][:, None, :]
     dmin_nom = np.minimum(_segment_min(rel_t - own_nom)[0], _segment_min(rel_tb - own_nom)[0])
-    if coast is not None:   # (tenth session) coasting too, for the marked entries
-        c = coast[ti]
+    if hover is not None and bp.escape_trigger_coast:   # (tenth session) coasting too, for the hovering entries
+        c = hover[ti]
         dmin_nom = np.where(c, np.minimum(dmin_nom, np.minimum(_segment_min(rel_t)[0], _segment_min(rel_tb)[0])), dmin_nom)
     hit = dmin_nom < trigger_m[ti]
     active[np.unique(owner[ti[hit]])] = True
@@ -158,6 +158,9 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     dn = _segment_min(rel - own_nom_e)[0]
     dn[thr] = np.minimum(dn[thr], _segment_min(rel_b - own_nom_e[thr])[0])
     conflict = (dn < clear) & (un_s > bp.u_noise_m_s)
+    if hover is not None and side_pref is not None and bp.escape_side_over_keep_right:
+        # (eleventh session) in a row with a lane side, no keep-right against a hovering vehicle
+        conflict &= ~(hover[ent] & np.any(side_pref[owner[ent]] != 0, axis=1))
     # the own displacement under (a_1 for commit_s, then a_2): alpha(t) a_1 + beta(t) a_2
     tc = min(commit_s, t[-1])
     alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))

@@ -50,6 +50,8 @@ def _params(rng: np.random.Generator) -> BackstopParams:
         kw["escape_side_commit"] = float(rng.choice([0.0, 1.0, 3.0]))
         kw["escape_lateral_cost"] = float(rng.choice([1.0, 3.0]))
         kw["escape_planned_weight"] = float(rng.choice([1.0, 0.5]))
+        kw["escape_trigger_coast"] = bool(rng.random() < 0.5)
+        kw["escape_side_over_keep_right"] = bool(rng.random() < 0.5)
     return dataclasses.replace(BackstopParams(), **kw)
 
 
@@ -70,10 +72,10 @@ def test_escape_acc_is_bit_identical_to_the_numpy_version(seed):
         if rng.random() < 0.5:
             ang = rng.uniform(0, 2 * np.pi, own.shape[0])
             side = np.stack([np.cos(ang), np.sin(ang)], axis=1) * (rng.random(own.shape[0]) < 0.6)[:, None]
-        # the threat entries whose coasting also wakes the escape (the controller marks the hovering ones), or none
-        coast = (threat & (rng.random(m) < 0.5)) if rng.random() < 0.5 else None
-        a_new, act_new = backstop.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit, side, coast)
-        a_ref, act_ref = ref.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit, side, coast)
+        # the hovering threat entries (coasting also wakes the escape; no keep-right where the row has a side), or none
+        hover = (threat & (rng.random(m) < 0.5)) if rng.random() < 0.5 else None
+        a_new, act_new = backstop.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit, side, hover)
+        a_ref, act_ref = ref.escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit, side, hover)
         assert np.array_equal(act_new, act_ref)
         assert np.array_equal(a_new, a_ref), (a_new, a_ref)
         acted += int(act_ref.sum())
@@ -105,12 +107,15 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
 # the reference is the backstop as it was before the lost-to-the-plan rule, the flow-relative escape reach (issue 18,
 # fifth session; since the seventh also the crowded push's), the yield of a UAV off its particle (sixth session) and
 # the gap push (seventh) and the rules against a hovering vehicle (tenth: the lane side, the clearance by the spacing
-# now, the coasting trigger; their own tests are in tests/test_default_controller.py): compared with those off
+# now, the coasting trigger; eleventh: the trigger by the spacing now, the lane side over keep-right; their own tests
+# are in tests/test_default_controller.py): compared with those off
 AS_REFERENCE = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                          unplanned_flow_m_s=0.0, escape_yield=False,
                                                                          gap_push=False, escape_side_commit=0.0,
                                                                          unplanned_hover_clear_now=False,
-                                                                         escape_trigger_coast=False))
+                                                                         unplanned_hover_trigger_now=False,
+                                                                         escape_trigger_coast=False,
+                                                                         escape_side_over_keep_right=False))
 
 
 def _controller(scenario: str, n: int, rows: np.ndarray, seed: int):

@@ -471,7 +471,8 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     assert m["arrived_fraction_others"] == 1.0
     # the case exercises the rule: without it, that pair (with the rules that came after it off as well - the yield,
     # the gap push and the crowded push's flow reach: the flight without the lost rule alone keeps 0.185 m, through
-    # what the yields changed before, and with the yield off but the two others on it has no pair either)
+    # what the yields changed before, and with the yield off but the two others on it has no pair either; nor with the
+    # eleventh session's trigger by the spacing now and lane side over keep-right, which are off by default)
     off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                         escape_yield=False, gap_push=False,
                                                                         push_flow_reach=False)))
@@ -710,11 +711,14 @@ def test_the_escape_also_acts_when_coasting_would_hit_a_hovering_vehicle():
     a_nom = np.array([[0.0, 0.28]])
     sensed = np.array([[7.5, 0.01, 0.0, 0.0]])
     args = (own, a_nom, sensed, np.array([0]), np.array([True]), np.array([0.25]), np.array([0.3]), DEFAULT.backstop, 0.5)
-    for coast in (True, False):
-        _, act = escape_acc(*args, None, np.array([coast]))
-        # then the escape is active where the entry is marked for the coasting prediction, and not otherwise
-        assert act[0] == coast
+    for hover in (True, False):
+        _, act = escape_acc(*args, None, np.array([hover]))
+        # then the escape is active where the entry is marked as hovering (the coasting prediction), and not otherwise
+        assert act[0] == hover
     assert not escape_acc(*args)[1][0]
+    # nor with the rule off (escape_trigger_coast = False)
+    off = dataclasses.replace(DEFAULT.backstop, escape_trigger_coast=False)
+    assert not escape_acc(*args[:-2], off, 0.5, None, np.array([True]))[1][0]
     # and a vehicle that coasting misses too does not wake it
     far = sensed.copy()
     far[0, 1] = 1.0
@@ -728,13 +732,14 @@ def test_a_hovering_vehicle_off_the_plan_is_kept_clear_by_the_spacing_flown_now_
     import mfg_autopilot.guidance.controller as ctl
     seen = {}
 
-    def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, coast=None):
-        seen.update(states=states, owner=owner, threat=threat, trig=trig, clear=clear, coast=coast)
-        return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, coast)
+    def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, hover=None):
+        seen.update(states=states, owner=owner, threat=threat, trig=trig, clear=clear, hover=hover)
+        return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, hover)
 
     monkeypatch.setattr(ctl, "escape_acc", spy)
     for now in (True, False):
-        pre = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, unplanned_hover_clear_now=now))
+        pre = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, unplanned_hover_clear_now=now,
+                                                                        unplanned_hover_trigger_now=now))
         c_, x, a, _, c, v_hat = _lane_in_cruise(pre, ("dense", 100, 40))
         left = np.array([-v_hat[1], v_hat[0]])
         far = int(np.argmax(np.linalg.norm(x[:, 0:2] - x[a, 0:2], axis=1)))
@@ -753,6 +758,34 @@ def test_a_hovering_vehicle_off_the_plan_is_kept_clear_by_the_spacing_flown_now_
         want = min(pre.backstop.unplanned_target_m, 0.6 * sp_now) if now else slot
         np.testing.assert_allclose(seen["clear"][hov], want)
         np.testing.assert_allclose(seen["clear"][mov], slot)
-        # and only the hovering one wakes the escape by the coasting prediction (a gust-blown vehicle does not: with
-        # every unplanned vehicle marked, the unspread pad in a gust went from 1 to 4 collided pairs)
-        assert seen["coast"][hov].all() and not seen["coast"][mov].any()
+        # and its trigger min(0.6, 0.5 x spacing now), the moving one's the slot-sized min(0.6, 0.5 x slot spacing)
+        slot_trig = min(pre.backstop.unplanned_trigger_m, 0.5 * sp)
+        want = min(pre.backstop.unplanned_trigger_m, 0.5 * sp_now) if now else slot_trig
+        np.testing.assert_allclose(seen["trig"][hov], want)
+        np.testing.assert_allclose(seen["trig"][mov], slot_trig)
+        assert want > slot_trig or not now
+        # and only the hovering one is marked as hovering (coasting wakes the escape, the lane side replaces keep-right;
+        # a gust-blown vehicle is not: with every unplanned vehicle marked for the coasting trigger, the unspread pad in
+        # a gust went from 1 to 4 collided pairs)
+        assert seen["hover"][hov].all() and not seen["hover"][mov].any()
+
+
+@pytest.mark.parametrize("rule", [True, False])
+def test_the_lane_side_and_not_keep_right_decides_the_side_a_hovering_vehicle_is_passed_on(rule):
+    # given a UAV at 4 m/s straight at a vehicle hovering 5 m ahead on its line, its lane's side on its left (dense
+    # --fail-vehicle N = 3,000 seed 31: keep-right's cost 2.0 outweighed the lane side's 1.0, UAV 2682 swerved to the
+    # lane side at one step, to the right at the next, back at the third, and passed the failed vehicle at 0.17 m)
+    bp = dataclasses.replace(DEFAULT.backstop, escape_side_over_keep_right=rule)
+    own = np.array([[0.0, 0.0, 4.0, 0.0]])
+    sensed = np.array([[5.0, 0.0, 0.0, 0.0]])
+    args = (own, np.zeros((1, 2)), sensed, np.array([0]), np.array([True]), np.array([0.6]), np.array([0.8]), bp, 0.5)
+    left, right = np.array([[0.0, 1.0]]), np.array([[0.0, -1.0]])
+    a, act = escape_acc(*args, left, np.array([True]))
+    # then with the rule it swerves left, to its lane's side; without it keep-right takes it right
+    assert act[0] and (a[0, 1] > 0.5 if rule else a[0, 1] < -0.5), a
+    # a lane side on the right is kept either way
+    a, act = escape_acc(*args, right, np.array([True]))
+    assert act[0] and a[0, 1] < -0.5, a
+    # and a vehicle not marked as hovering keeps keep-right (two escaping vehicles pick opposite sides by it)
+    a, act = escape_acc(*args, left, np.array([False]))
+    assert act[0] and a[0, 1] < -0.5, a

@@ -248,6 +248,9 @@ class _DefaultBase:
             if bp.unplanned_hover_clear_now:
                 # its clearance by the spacing flown now
                 e_clear[hover] = np.maximum(e_clear[hover], min(bp.unplanned_target_m, 0.6 * self._spacing_now_m()))
+            if bp.unplanned_hover_trigger_now:
+                # and its trigger
+                e_trig[hover] = np.maximum(e_trig[hover], min(bp.unplanned_trigger_m, 0.5 * self._spacing_now_m()))
             # the escape is a backstop for a few off-plan vehicles; a row that senses mostly off-plan vehicles (the
             # swarm has lost its plan) gets the single half-plane push instead (measured: with every UAV off the
             # plan, escaping from all neighbours at once swerved UAVs into each other in the 0.5 m formation)
@@ -268,12 +271,12 @@ class _DefaultBase:
                 trig = np.where(threat, e_trig, np.where(yl, y_trig, np.where(gap, bp.trigger_m, 0.0)))
                 clear = np.where(unplanned, e_clear,
                                  np.where(yl, y_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp)))
-                # coasting also wakes the escape against a hovering threat (BackstopParams.escape_trigger_coast)
+                # against a hovering threat coasting also wakes the escape (BackstopParams.escape_trigger_coast), and
+                # the lane side replaces keep-right (escape_side_over_keep_right)
                 hover_threat = threat & hover
                 threat = threat | gap | yl
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat),
-                                        hover_threat if bp.escape_trigger_coast else None)
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat)
             if np.any(push):
                 # with the escape's reach per entry: a crowded row (most of its neighbours blown off the plan) pushed
                 # with the large reach (0.6 / 0.8 m) against neighbours that move with the flow was shoved about in

@@ -104,7 +104,8 @@ def _escape_args(bp: BackstopParams, commit_s: float) -> tuple:
     return (g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
             float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
             bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
-            g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2, float(bp.escape_side_commit))
+            g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2, float(bp.escape_side_commit),
+            bool(bp.escape_trigger_coast), bool(bp.escape_side_over_keep_right))
 
 
 def _directions(k: int) -> np.ndarray:
@@ -114,7 +115,7 @@ def _directions(k: int) -> np.ndarray:
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
-               side_pref: np.ndarray | None = None, coast: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               side_pref: np.ndarray | None = None, hover: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -136,10 +137,12 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     sensed vehicle, not only of the threat; u_e = tau_min / max(t of the approach, tau_min)
     (urgency). Rows that are not active keep a_nom. side_pref (n, 2), optional: per row a unit vector across its track
     (or 0); a candidate a_1 against it adds escape_side_commit max(0, -side_pref . a_1) / a_max to the cost (the side a
-    row passes a hovering vehicle on, guidance.controller._escape_side). coast (m,) bool, optional: a threat entry marked
-    also activates its row if the own vehicle *coasting* (a = 0 over the horizon) would bring it below its trigger (the
-    nominal command's momentary tracking correction, held for 2 s, predicts misses the UAV does not make; the controller
-    marks the hovering threats, BackstopParams.escape_trigger_coast). Returns (command (n, 2), active (n,)).
+    row passes a hovering vehicle on, guidance.controller._escape_side). hover (m,) bool, optional: the threat entries
+    that hover (the controller marks those slower than hover_max_speed_m_s, off the plan). With
+    bp.escape_trigger_coast such an entry also activates its row if the own vehicle *coasting* (a = 0 over the horizon)
+    would bring it below its trigger (the nominal command's momentary tracking correction, held for 2 s, predicts misses
+    the UAV does not make); with bp.escape_side_over_keep_right it gets no keep-right term in a row with a side_pref (the
+    lane side decides which side it is passed on). Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
     active = np.zeros(n, dtype=bool)
@@ -153,7 +156,7 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
         np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s),
         np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float),
-        np.zeros(sensed_states.shape[0], dtype=bool) if coast is None else np.ascontiguousarray(coast, dtype=bool))
+        np.zeros(sensed_states.shape[0], dtype=bool) if hover is None else np.ascontiguousarray(hover, dtype=bool))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

@@ -207,10 +207,12 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
 @njit(cache=True)
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
-                keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, side_pref, coast):
+                keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, trigger_coast, side_over_keep_right,
+                side_pref, hover):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
-    least one threat. Same operations, in the same order, as the numpy code (module docstring). coast (m,) bool: a row
-    is also active if coasting (a = 0 over the horizon) brings such a threat entry below its trigger."""
+    least one threat. Same operations, in the same order, as the numpy code (module docstring). hover (m,) bool: the
+    hovering threat entries; with trigger_coast a row is also active if coasting (a = 0 over the horizon) brings such an
+    entry below its trigger; with side_over_keep_right such an entry has no keep-right term in a row with a side."""
     n = own.shape[0]
     m = sensed_states.shape[0]
     T1 = t.shape[0]
@@ -250,7 +252,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         d1, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
         d2, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
         dn = _min(d1, d2)
-        if coast[ti[j]]:
+        if trigger_coast and hover[ti[j]]:
             d3, _ = _segment_min_one(rel_t, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
             d4, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
             dn = _min(dn, _min(d3, d4))
@@ -312,6 +314,8 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             dn = _min(dn, db)
             nb += 1
         conflict[q] = (dn < clear[q]) and (un > u_noise_m_s)
+        if side_over_keep_right and hover[e] and (side_pref[o, 0] != 0.0 or side_pref[o, 1] != 0.0):
+            conflict[q] = False
     a_nom_r = np.empty((r, 2))
     v_hat = np.empty((r, 2))
     side_r = np.empty((r, 2))
