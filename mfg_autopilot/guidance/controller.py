@@ -245,12 +245,13 @@ class _DefaultBase:
             e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
             # a hovering vehicle off the plan (failed in Hold, drifting): the rules of BackstopParams.hover_max_speed_m_s
             hover = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
+            sp_now = self._spacing_now_m()
             if bp.unplanned_hover_clear_now:
                 # its clearance by the spacing flown now
-                e_clear[hover] = np.maximum(e_clear[hover], min(bp.unplanned_target_m, 0.6 * self._spacing_now_m()))
+                e_clear[hover] = np.maximum(e_clear[hover], min(bp.unplanned_target_m, 0.6 * sp_now))
             if bp.unplanned_hover_trigger_now:
                 # and its trigger
-                e_trig[hover] = np.maximum(e_trig[hover], min(bp.unplanned_trigger_m, 0.5 * self._spacing_now_m()))
+                e_trig[hover] = np.maximum(e_trig[hover], min(bp.unplanned_trigger_m, 0.5 * sp_now))
             # the escape is a backstop for a few off-plan vehicles; a row that senses mostly off-plan vehicles (the
             # swarm has lost its plan) gets the single half-plane push instead (measured: with every UAV off the
             # plan, escaping from all neighbours at once swerved UAVs into each other in the 0.5 m formation)

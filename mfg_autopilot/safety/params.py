@@ -81,19 +81,19 @@ class BackstopParams:
     #   nearest hovering one (the vehicle drifts; a lane 5 cm off it would otherwise swap sides under it);
     # - unplanned_hover_clear_now: the clearance from it is min(unplanned_target_m, 0.6 x the plan's spacing *now*),
     #   not the slot-sized 0.3 m of the 0.5 m pad (the pad flies 1.1-1.4 m apart in cruise);
+    # - escape_trigger_coast: a row is also active if *coasting* (a = 0 over the horizon) brings it below its trigger,
+    #   not only its nominal command held (a momentary tracking correction held for 2 s predicted a 0.5 m miss of a
+    #   vehicle the UAV then passed at 0.09 m; the escape acted 1 s before the pass). Only against a hovering vehicle:
+    #   for every unplanned one, the unspread pad in a gust (a UAV fights the gust, coasting drifts) went 1 -> 4 pairs.
     # - unplanned_hover_trigger_now (off): its trigger too, min(unplanned_trigger_m, 0.5 x the spacing now): with the
     #   slot-sized 0.25 m trigger under a 0.8 m clearance the escape opened the predicted pass to 0.3 m at one step,
     #   was off at the next, and the tracking took the UAV back into its lane, through the failed vehicle;
     # - escape_side_over_keep_right (off): in a row with a lane side, the keep-right term does not count against a
     #   hovering vehicle (keep-right makes two *escaping* vehicles pick opposite sides; a hovering one does not escape,
     #   and its 2.0 outweighed the lane side's 1.0: a UAV whose lane side was left swerved right).
-    #   The two together kept half the 0.5 m dense spacing past the failed vehicle at N = 3,000 (4 seeds, was 0 of 4)
+    #   The two together kept half the 0.5 m dense spacing past the failed vehicle at N = 3,000 (4 seeds, was 1 of 4)
     #   and raised it at 5,000, but N = 10,000 seed 8 went from 0 to 2 collided pairs (three UAVs escaping it next to
-    #   their slots; the trigger alone: 1 pair there): off until that is understood (eleventh session, docs).
-    # - escape_trigger_coast: a row is also active if *coasting* (a = 0 over the horizon) brings it below its trigger,
-    #   not only its nominal command held (a momentary tracking correction held for 2 s predicted a 0.5 m miss of a
-    #   vehicle the UAV then passed at 0.09 m; the escape acted 1 s before the pass). Only against a hovering vehicle:
-    #   for every unplanned one, the unspread pad in a gust (a UAV fights the gust, coasting drifts) went 1 -> 4 pairs.
+    #   their slots; either rule alone: 1 pair there): off until that is understood (eleventh session, docs).
     escape_side_commit: float = 1.0
     escape_side_memory: bool = True
     hover_max_speed_m_s: float = 1.0
