@@ -267,6 +267,11 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             ctrl.prepare(k)
             plan_pos[k] = ctrl.plan_positions_m()
         info = ctrl.step(Observation(k, k * dt, obs, heard, sensed, heard_summary))
+        if plan_pos is not None:
+            # the particle as the controller tracked it at this step (deflected around a failed vehicle: guidance/detour.py)
+            ref = getattr(ctrl, "tracked_reference_m", None)
+            if ref is not None and ref[0] == k:
+                plan_pos[k] = ref[1]
         acc_cmd = f32(info.acc_m_s2)
         if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:
             K = cfg.fail_vehicle

@@ -475,7 +475,8 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     # eleventh session's trigger by the spacing now and lane side over keep-right, which are off by default)
     off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                         escape_yield=False, gap_push=False,
-                                                                        push_flow_reach=False)))
+                                                                        push_flow_reach=False),
+                                 detour=dataclasses.replace(DEFAULT.detour, enabled=False)))
     assert [10, 548] in off["collided_pairs_list"], off["collided_pairs_list"]
 
 

@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mfg_autopilot.guidance.detour import detour_offset, detour_onset, detour_side
 from mfg_autopilot.guidance.params import DefaultPreset
 from mfg_autopilot.guidance.planner import MeanFieldPlan, combine_priority, goal_acc, repulsion_from_neighbours
 from mfg_autopilot.guidance.group_plan import GroupPlan, group_plan_for
@@ -106,6 +107,9 @@ class _DefaultBase:
         self.backstop_active = np.zeros(self.n, dtype=bool)
         self.backstop_steps = np.zeros(self.n, dtype=np.int64)
         self._own_err: np.ndarray | None = None     # MFG: each row's deviation from its plan particle, s - s_plan (n, 4)
+        # MFG: the rows whose plan is deflected around a failed vehicle this step (mask (n,), its position (n, 2), the
+        # onset (n,), the clearance, the side (n,)): _detour; None when no row senses one
+        self._detour_state: tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None = None
         if bp.enabled:
             backstop.warm_up()              # load the compiled backstop now, not in the first control step (both modes)
 
@@ -195,6 +199,11 @@ class _DefaultBase:
         sn = self._not_heard(_sensed(obs), obs.neighbours)
         unplanned = self._unplanned(sn.states, sn.ids)
         unplanned |= self._unplanned_by_braking(sn, obs.step, unplanned, own)
+        if self._detour_state is not None and np.any(unplanned):
+            # a neighbour that flies the plan deflected around a lost vehicle (_detour) is on the plan of a row that
+            # senses that vehicle: the same deflection of the neighbour's own particle (by its id), which every such
+            # row computes alike
+            unplanned &= ~self._on_detour(sn, unplanned)
         planned = ~unplanned              # on the plan itself (not only up to the common mode)
         if isinstance(getattr(self, "plan", None), (RigidPlan, GroupPlan)) and not bp.planned_response_rigid:
             # a rigid plan keeps every planned pair at its start distance by construction: the tracking alone holds
@@ -337,6 +346,8 @@ class DefaultMFGController(_DefaultBase):
         self._seen_k: np.ndarray | None = None
         self._own_v_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' own velocities then)
         self._plan_v_hist: dict[int, np.ndarray] = {}
+        self._ref_pos: tuple[int, np.ndarray] | None = None     # (plan step, each row's reference position): act()
+        self._detour_mem: tuple[np.ndarray, np.ndarray] | None = None   # (lost vehicle id, side) per row: _detour
         self._cutoff_hist: dict[int, np.ndarray] = {}
 
     def exchange_t0(self, states, ids, own_index, sites_m) -> None:
@@ -378,7 +389,16 @@ class DefaultMFGController(_DefaultBase):
         tracking holds the UAV to, for the per-flight check of the guarantee (mfg_swarm.metrics.separation_guarantee)."""
         if self.plan is None:
             return None
+        ref = getattr(self, "_ref_pos", None)
+        if ref is not None and ref[0] == self.plan.k:      # act() at this step: the particle as deflected (_detour)
+            return ref[1].copy()
         return self.plan.states[self.own_index, 0:2].copy()
+
+    @property
+    def tracked_reference_m(self) -> tuple[int, np.ndarray] | None:
+        """(step, (n, 2)): each row's reference position at the last act(), its plan particle as deflected around a
+        failed vehicle (_detour); None before the first act()."""
+        return self._ref_pos
 
     @property
     def plan_certificate(self) -> dict | None:
@@ -572,6 +592,86 @@ class DefaultMFGController(_DefaultBase):
         now = getattr(self.plan, "spacing_now_m", None)
         return float(now) if now is not None else self._spacing_m()
 
+    def _on_detour(self, sn: Neighbours, unplanned: np.ndarray) -> np.ndarray:
+        """(m,) bool: entries (among ``unplanned``) of rows whose plan is deflected (_detour) that are within
+        plan_mismatch_m of their own particle deflected the same way, in the plan metric."""
+        out = np.zeros(sn.states.shape[0], dtype=bool)
+        det = self._detour_state
+        if det is None or sn.ids is None or self._plan_ids is None:
+            return out
+        mask, o, alpha, clear, _ = det
+        idx = np.flatnonzero(unplanned & mask[sn.owner])
+        if idx.size == 0:
+            return out
+        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64)[idx])
+        known = part >= 0
+        idx, part = idx[known], part[known]
+        ps_all = self.plan.states[part]
+        rows = sn.owner[idx]
+        ps = self.preset.backstop.plan_mismatch_s
+        # either side: the neighbour chose its side at its own first meeting with the vehicle
+        for sgn in (1.0, -1.0):
+            ds, _ = detour_offset(ps_all, np.zeros((idx.size, 2)), o[rows], alpha[rows], clear, self.preset.detour,
+                                  self.preset.dt_s, np.full(idx.size, sgn))
+            dx = sn.states[idx] - (ps_all + ds)
+            d2 = dx[:, 0] ** 2 + dx[:, 1] ** 2 + ps * ps * (dx[:, 2] ** 2 + dx[:, 3] ** 2)
+            out[idx] |= d2 <= self.preset.backstop.plan_mismatch_m ** 2
+        return out
+
+    def _detour(self, own: np.ndarray, obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray, float,
+                                                                  np.ndarray] | None:
+        """The rows whose plan is deflected around a failed vehicle (guidance/detour.py, DetourParams): (mask (n,), the
+        nearest such vehicle's sensed position (n, 2), the onset alpha (n,), the clearance c, the own side (n,)), or
+        None. Such a vehicle is sensed, hovers (slower than ``hover_max_speed_m_s``) and is farther than
+        ``onset_from_m`` from its own particle (a failed one, left behind by the stream); alpha and c are the same for
+        every row that senses it (from its sensed state, the plan and the plan's spacing now)."""
+        dp = self.preset.detour
+        if not dp.enabled or self._plan_ids is None:
+            return None
+        if self._detour_mem is None:
+            self._detour_mem = (np.full(self.n, -1, dtype=np.int64), np.zeros(self.n))
+        sn = _sensed(obs)
+        if sn.ids is None or sn.states.shape[0] == 0:
+            return None
+        bp = self.preset.backstop
+        st = sn.states
+        idx = np.flatnonzero(st[:, 2] ** 2 + st[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
+        if idx.size == 0:
+            return None
+        ids = np.asarray(sn.ids, dtype=np.int64)
+        part = self._particles_of(ids[idx])
+        known = part >= 0
+        idx, part = idx[known], part[known]
+        dist = np.hypot(*(st[idx, 0:2] - self.plan.states[part, 0:2]).T)
+        far = dist > dp.onset_from_m
+        idx, dist = idx[far], dist[far]
+        if idx.size == 0:
+            return None
+        alpha = detour_onset(dist, dp)
+        rows = sn.owner[idx]
+        d = st[idx, 0:2] - own[rows, 0:2]
+        order = np.lexsort((d[:, 0] ** 2 + d[:, 1] ** 2, rows))
+        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+        mask = np.zeros(self.n, dtype=bool)
+        o, al, side = np.zeros((self.n, 2)), np.zeros(self.n), np.zeros(self.n)
+        r = rows[first]
+        mask[r], o[r], al[r] = True, st[idx[first], 0:2], alpha[first]
+        # the side of the own particle's lane, chosen at the row's first meeting with that vehicle (by id) and kept
+        # while it is the row's nearest lost one: the vehicle drifts in the wind across a lane close to it
+        tid = ids[idx[first]]
+        # (where the lane passes it: a turning lane by its curvature, from the particle's velocity change over the last
+        # step; the plan's command also holds the drag and the mean wind, which do not bend the lane)
+        a_kin = self._plan_acc(self.plan.k)
+        side[r] = detour_side(self.plan.states[self.own_index[r]], o[r],
+                              None if a_kin is None else a_kin[self.own_index[r]])
+        mem_id, mem_side = self._detour_mem
+        keep = mem_id[r] == tid
+        side[r] = np.where(keep, mem_side[r], side[r])
+        mem_id[:], mem_side[:] = -1, 0.0
+        mem_id[r], mem_side[r] = tid, side[r]
+        clear = min(dp.clear_max_m, dp.clear_fraction * self._spacing_now_m())
+        return mask, o, al, clear, side
+
     def _yielding(self, sn: Neighbours, covered: np.ndarray) -> np.ndarray:
         """(m,) bool: the sensed entries that neither response covers (``covered`` False) and that the observing row
         yields to: the row is off its own particle by more than ``escape_yield_min_dev_m`` and the sensed vehicle
@@ -650,6 +750,11 @@ class DefaultMFGController(_DefaultBase):
             sgn = np.sign(np.sum(mem_side[r] * across, axis=1))
             side = np.where((keep & (sgn != 0))[:, None], sgn[:, None] * across * moving, side)
             mem_id[r], mem_side[r] = tid, side
+        det = self._detour_state
+        if det is not None:
+            # a row flying the plan deflected around a lost vehicle passes it on the deflection's side
+            on = det[0][r]
+            side = np.where(on[:, None], det[4][r][:, None] * across * moving, side)
         out = np.zeros((self.n, 2))
         out[r] = side
         return out
@@ -857,6 +962,10 @@ class DefaultMFGController(_DefaultBase):
         p, tp = self.preset, self.preset.tracking
         a_max, c_max = p.learner.acc_max_m_s2, tp.common_acc_max_m_s2
         e_bar, cnt = self._formation_error(obs)
+        if self._detour_state is not None:
+            # a row flying the deflected plan (_detour) tracks it alone: its neighbours' errors are measured against
+            # the plan they do not fly there
+            cnt = np.where(self._detour_state[0], 1.0, cnt)
         rows = np.flatnonzero(cnt > 1)
         if rows.size == 0:
             return a_nom
@@ -923,6 +1032,15 @@ class DefaultMFGController(_DefaultBase):
         own = np.asarray(obs.own_states, dtype=float)
         s_plan = self.plan.states[self.own_index]
         a_plan = a_plan_all[self.own_index]
+        self._detour_state = det = self._detour(own, obs)
+        if det is not None:
+            # the own particle deflected around a lost vehicle with every lane near it (guidance/detour.py)
+            rows = np.flatnonzero(det[0])
+            ds, da = detour_offset(s_plan[rows], a_plan[rows], det[1][rows], det[2][rows], det[3], p.detour, p.dt_s,
+                                   det[4][rows])
+            s_plan[rows] += ds
+            a_plan[rows] += da
+        self._ref_pos = (self.plan.k, s_plan[:, 0:2].copy())
         e = own - s_plan
         self._own_err = e
         e = np.concatenate([cap_norm(e[:, 0:2], tp.e_pos_max_m), cap_norm(e[:, 2:4], tp.e_vel_max_m_s)], axis=1)

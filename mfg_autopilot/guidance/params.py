@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from mfg_autopilot.paper.params import CostParams, LearnerParams, Preset
 from mfg_autopilot.safety.params import BackstopParams, OrcaParams
 
-__all__ = ["GuidanceParams", "RepulsionParams", "TrackingParams", "DefaultPreset", "DEFAULT"]
+__all__ = ["GuidanceParams", "RepulsionParams", "TrackingParams", "DetourParams", "DefaultPreset", "DEFAULT"]
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,31 @@ class TrackingParams:
 
 
 @dataclass(frozen=True)
+class DetourParams:
+    """MFG: the plan deflected around a hovering vehicle lost to it (guidance/detour.py; not from the paper; issue 18).
+    The support (|along| <= plateau_m + ramp_m, |across| <= width_m) must lie inside the backstop's sensor range."""
+
+    enabled: bool = True
+    clear_fraction: float = 0.6     # the lanes pass the vehicle at least this x the plan's spacing now ...
+    clear_max_m: float = 0.85       # ... and at most this (c; lanes compress by 1 - c / width_m)
+    width_m: float = 3.0            # lanes within this of the vehicle, across their track, are deflected
+    plateau_m: float = 0.5          # along the track: fully deflected within this of the vehicle ...
+    ramp_m: float = 8.0             # ... and a raised cosine over this much before and after (lateral acceleration
+                                    # c (pi / ramp)^2 / 2 v^2: 1.05 m/s^2 at 4 m/s)
+    onset_from_m: float = 3.0       # a hovering vehicle this far from its own particle is detoured around ...
+    onset_m: float = 6.0            # ... fully once it is this much farther (a smoothstep between)
+    min_speed_m_s: float = 0.5      # slower particles are faded out (no lane)
+
+    def __post_init__(self) -> None:
+        for k in ("clear_fraction", "clear_max_m", "width_m", "plateau_m", "ramp_m", "onset_from_m", "onset_m",
+                  "min_speed_m_s"):
+            if not getattr(self, k) > 0:
+                raise ValueError(f"DetourParams.{k} must be > 0, got {getattr(self, k)}")
+        if not self.clear_max_m < self.width_m:
+            raise ValueError("DetourParams.clear_max_m must be < width_m (lanes would swap order)")
+
+
+@dataclass(frozen=True)
 class DefaultPreset(Preset):
     """The product preset: the paper's model and cost plus the pieces above."""
 
@@ -99,6 +124,7 @@ class DefaultPreset(Preset):
     hjb_repulsion: RepulsionParams = field(default_factory=lambda: RepulsionParams(heard_guard_fraction=0.5))   # HJB_d's reactive repulsion on heard states
     tracking: TrackingParams = field(default_factory=TrackingParams)
     backstop: BackstopParams = field(default_factory=BackstopParams)
+    detour: DetourParams = field(default_factory=DetourParams)     # MFG: the plan deflected around a failed vehicle
     orca: OrcaParams = field(default_factory=OrcaParams)     # the ``orca`` mode's baseline (safety/orca.py), not used by mfg / hjb
     use_plan: bool = True           # MFG: track the interacting mean-field plan (False: own guidance + no plan)
     rigid_plan: bool = True         # MFG: when the target layout is an isometry of the start, the plan is that rigid
