@@ -1,0 +1,71 @@
+"""Physical limits of what any controller can keep (issue 18): the UAV right behind a vehicle that fails into Hold.
+
+A vehicle that fails into Hold brakes along its track at ``a_brake_m_s2`` from the first instant (the simulator's and
+the mock's Hold, a saturated PD towards PX4's braking stop). The UAV ``gap_m`` behind it in its lane, at the same speed
+``v_m_s``, can react only ``delay_s`` later (the braking is seen in the sensed states one control period later) and
+then with at most ``a_max_m_s2``. Relative to the failed vehicle its along-track acceleration is a + a_brake >= 0 (it
+can at best cancel the braking), so it keeps closing at >= a_brake x delay until the vehicle stops; the question is
+how far across its track it can be when it draws abeam.
+
+``follower_best_clearance_m`` answers it numerically: the largest smallest distance over the flight, maximised over
+accelerations of norm a_max in a direction that is piecewise constant over ``step_s`` (each piece free), from the best
+constant direction and seeded restarts (L-BFGS-B on a soft minimum). A maximum over a family of controls is a lower
+bound of the true optimum; the constant-direction optimum and the piecewise-free one agree to about a millimetre
+(tests/test_limits.py), which is the evidence that the bound is the optimum. Not modelled: PX4's jerk-limited
+trajectory (the Hold setpoint of a real PX4 is smoothed at MPC_JERK_AUTO, so its braking builds up over ~0.5 s and a
+real follower has more room than here).
+
+Command: ``.venv/bin/python bench/onset_bound.py`` (a table over the delay and the gap).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import minimize
+
+__all__ = ["follower_best_clearance_m"]
+
+
+def _distances(theta: np.ndarray, v_m_s: float, gap_m: float, delay_s: float, a_brake_m_s2: float, a_max_m_s2: float,
+               step_s: float, horizon_s: float) -> np.ndarray:
+    """Distance follower - failed vehicle every step_s (exact at the samples: piecewise-constant accelerations)."""
+    n_wait = int(round(delay_s / step_s))
+    n = int(round(horizon_s / step_s))
+    th = np.broadcast_to(theta, (n - n_wait,))
+    ax = np.concatenate([np.zeros(n_wait), a_max_m_s2 * np.cos(th)])
+    ay = np.concatenate([np.zeros(n_wait), a_max_m_s2 * np.sin(th)])
+    t = np.arange(n + 1) * step_s
+    vx = v_m_s + np.concatenate([[0.0], np.cumsum(ax) * step_s])
+    vy = np.concatenate([[0.0], np.cumsum(ay) * step_s])
+    x = -gap_m + np.concatenate([[0.0], np.cumsum(0.5 * (vx[1:] + vx[:-1]) * step_s)])
+    y = np.concatenate([[0.0], np.cumsum(0.5 * (vy[1:] + vy[:-1]) * step_s)])
+    t_stop = v_m_s / a_brake_m_s2
+    tt = np.minimum(t, t_stop)
+    x_failed = v_m_s * tt - 0.5 * a_brake_m_s2 * tt * tt
+    return np.hypot(x - x_failed, y)
+
+
+def follower_best_clearance_m(v_m_s: float = 4.0, gap_m: float = np.sqrt(2.0), delay_s: float = 0.5,
+                              a_brake_m_s2: float = 2.0, a_max_m_s2: float = 2.0, step_s: float = 0.05,
+                              horizon_s: float = 4.0, restarts: int = 6, seed: int = 0) -> dict:
+    """{"constant_m": best over constant directions, "piecewise_m": best over piecewise-constant ones (>= constant),
+    "direction_deg": the best constant direction from straight ahead (180: full braking)}. Distances at the step_s
+    samples; the failed vehicle brakes from t = 0, the follower acts from delay_s (a multiple of step_s)."""
+    args = (v_m_s, gap_m, delay_s, a_brake_m_s2, a_max_m_s2, step_s, horizon_s)
+    dirs = np.linspace(0.0, np.pi, 721)     # by symmetry one side
+    const = np.array([_distances(np.array(th), *args).min() for th in dirs])
+    i = int(np.argmax(const))
+    best_c, th_c = float(const[i]), float(dirs[i])
+    n_ctrl = int(round(horizon_s / step_s)) - int(round(delay_s / step_s))
+
+    def neg_soft_min(th: np.ndarray, k: float = 80.0) -> float:
+        d = _distances(th, *args)
+        return float(np.log(np.sum(np.exp(-k * (d - d.min())))) / k - d.min())
+
+    rng = np.random.default_rng(seed)
+    best_p = best_c
+    for r in range(restarts):
+        th0 = np.full(n_ctrl, th_c) if r == 0 else th_c + 0.4 * rng.standard_normal(n_ctrl)
+        res = minimize(neg_soft_min, th0, method="L-BFGS-B", options={"maxiter": 300})
+        best_p = max(best_p, float(_distances(res.x, *args).min()))
+    return {"constant_m": best_c, "piecewise_m": best_p, "direction_deg": float(np.degrees(th_c))}
