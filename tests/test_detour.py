@@ -146,3 +146,51 @@ def test_the_lanes_pass_a_failed_vehicle_deflected_together():
     assert g_off["plan_min_separation_m"] >= np.sqrt(2.0) - 1e-3
     c = min(on.detour.clear_max_m, on.detour.clear_fraction * np.sqrt(2.0))
     assert (1.0 - c / on.detour.width_m) * np.sqrt(2.0) - 1e-3 <= g_on["plan_min_separation_m"] < np.sqrt(2.0) - 0.1
+
+
+def test_a_bank_of_one_per_vehicle_deflects_exactly_as_the_bank_of_all():
+    """The detour is decided by each UAV from its own observation (the sensed states and ids, the plan from the t = 0
+    exchange): N controllers of one vehicle each (the process swarm) command bit for bit what one bank of N commands,
+    while the lanes pass a vehicle that failed into Hold (paper N = 25, vehicle 2 in the front row fails at 5 s and the
+    four rows behind fly past it)."""
+    from scipy.spatial import cKDTree
+
+    from mfg_autopilot.interface import Neighbours, Observation
+    from mfg_autopilot.presets import make_controller, preset_by_name
+    from mfg_swarm.scenarios import make_scenario
+    from mfg_swarm.sim import as_f32, plant_params_for
+    from mock_vehicle.plant import SwarmPlant, braking_stop_m, hold_acc_m_s2
+
+    preset = preset_by_name("default")
+    sc = make_scenario("paper", 25)
+    n, K = sc.n, 2
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=3)
+    S0 = as_f32(plant.states)
+    ids = np.arange(n)
+    bank = make_controller("mfg", preset, sc.destination_m)
+    bank.exchange_t0(S0, ids, ids, sc.destination_m)
+    singles = []
+    for i in range(n):
+        c = make_controller("mfg", preset, sc.destination_m[i:i + 1])
+        c.exchange_t0(S0, ids, np.array([i]), sc.destination_m)
+        singles.append(c)
+    hold, deflected = None, set()
+    for k in range(70):
+        obs = as_f32(plant.states)
+        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(bank.sensor_range_m, output_type="ndarray"))
+        a_bank = bank.step(Observation(k, k * preset.dt_s, obs, None, sensed)).acc_m_s2
+        if bank._detour_state is not None:
+            deflected |= set(np.flatnonzero(bank._detour_state[0] & (bank._detour_state[2] > 0)).tolist())
+        a_single = []
+        for i, c in enumerate(singles):
+            m = sensed.owner == i
+            own = Neighbours(sensed.states[m], np.zeros(int(m.sum()), dtype=np.int64), sensed.ids[m])
+            a_single.append(c.step(Observation(k, k * preset.dt_s, obs[i:i + 1], None, own)).acc_m_s2)
+        np.testing.assert_array_equal(a_bank, np.concatenate(a_single))
+        a = as_f32(a_bank)
+        if k * preset.dt_s >= 5.0:
+            hold = braking_stop_m(obs[K:K + 1]) if hold is None else hold
+            a[K] = hold_acc_m_s2(obs[K:K + 1], hold, plant.params.acc_limit_m_s2)[0]
+        plant.step(a, preset.dt_s)
+    # the flight exercised the detour: several rows flew the deflected plan
+    assert len(deflected - {K}) >= 4, deflected
