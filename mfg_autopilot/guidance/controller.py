@@ -183,6 +183,11 @@ class _DefaultBase:
         already get a response."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
+    def _on_detour(self, sn: Neighbours, unplanned: np.ndarray) -> np.ndarray:
+        """(m,) bool: entries (among ``unplanned``) that fly the plan as deflected around a failed vehicle (MFG;
+        HJB_d: none, it has no plan to deflect)."""
+        return np.zeros(sn.states.shape[0], dtype=bool)
+
     def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray) -> np.ndarray | None:
         """(n, 2) the side each row passes a hovering vehicle off the plan on (MFG; HJB_d: None, nothing is off it)."""
         return None
@@ -389,7 +394,7 @@ class DefaultMFGController(_DefaultBase):
         tracking holds the UAV to, for the per-flight check of the guarantee (mfg_swarm.metrics.separation_guarantee)."""
         if self.plan is None:
             return None
-        ref = getattr(self, "_ref_pos", None)
+        ref = self._ref_pos
         if ref is not None and ref[0] == self.plan.k:      # act() at this step: the particle as deflected (_detour)
             return ref[1].copy()
         return self.plan.states[self.own_index, 0:2].copy()
