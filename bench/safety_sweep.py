@@ -84,12 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--fail-vehicle", type=int, default=None)
     ap.add_argument("--fail-at", type=float, default=20.0)
+    ap.add_argument("--hold-jerk", type=float, default=None, help="the failed vehicle's Hold jerk limit (sim --hold-jerk)")
     ap.add_argument("--gust", action="store_true")
     a = ap.parse_args(argv)
     from mfg_autopilot.presets import MODES
 
     extra = (["--fail-vehicle", str(a.fail_vehicle), "--fail-at", str(a.fail_at)] if a.fail_vehicle is not None else []) + \
-        (["--gust"] if a.gust else [])
+        (["--hold-jerk", str(a.hold_jerk)] if a.hold_jerk is not None else []) + (["--gust"] if a.gust else [])
     rows = []
     for family in a.families.split(","):
         for n in (int(x) for x in a.n.split(",")):

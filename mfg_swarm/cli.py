@@ -49,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     sim.add_argument("--fail-vehicle", type=int, default=None, metavar="K", help="fault: vehicle K stops following its controller and holds where it is")
     sim.add_argument("--fail-at", type=float, default=0.0, metavar="T", help="fault: time in s at which --fail-vehicle fails (default: 0)")
+    sim.add_argument("--hold-jerk", type=float, default=4.0, metavar="J",
+                     help="fault: the failed vehicle's Hold changes its acceleration at most J m/s^3 (PX4 MPC_JERK_AUTO; "
+                          "default 4); 0: it brakes at the airframe's limit from the first instant (pessimistic)")
     sim.add_argument("--gust", action="store_true", help="fault: a wind gust beyond V_o (mfg_swarm.sim.GustParams: 1 m/s^2 +-50 %%, t = 20-25 s)")
     sim.add_argument("--record", action="store_true",
                      help="also write flight.mcap (Foxglove: map, 3D scene, plots, events; docs/formats.md)")
@@ -197,7 +200,8 @@ def _cmd_sim(args) -> int:
 
     cfg = SimConfig(scenario=_scenario(args), mode=args.mode, preset=preset_by_name(args.preset),
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
-                    fail_vehicle=args.fail_vehicle, fail_at_s=args.fail_at, gust=GustParams() if args.gust else None)
+                    fail_vehicle=args.fail_vehicle, fail_at_s=args.fail_at,
+                    hold_jerk_m_s3=args.hold_jerk, gust=GustParams() if args.gust else None)
     traj, metrics = simulate(cfg, progress=False if args.no_progress else None)
     args.out.mkdir(parents=True, exist_ok=True)
     write_npz_atomic(args.out / "trajectories.npz", traj.arrays())

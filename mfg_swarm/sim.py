@@ -13,7 +13,11 @@ One loop per control step t_k = k dt:
 Fault events (``SimConfig``):
 - ``fail_vehicle`` K, ``fail_at_s`` T: from the first control instant t_k >= T, vehicle K
   stops following its controller and holds (PX4 Hold: ``mock_vehicle.plant.hold_acc_m_s2`` towards
-  the braking stop ahead of its state at t_k, ``braking_stop_m``, as PX4's navigator sets it). It still broadcasts
+  the braking stop ahead of its state at t_k, ``braking_stop_m``, as PX4's navigator sets it). Its acceleration
+  changes from its last commanded one at most ``hold_jerk_m_s3`` (PX4's MPC_JERK_AUTO, 4 m/s^3:
+  ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step, as the mock vehicle flies Hold). 0: no jerk
+  limit, the PD computed at t_k and held over the step, braking at the airframe's limit from the first instant
+  (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare). It still broadcasts
   (HJB_d hears it) and is still seen by proximity sensors.
 - ``gust`` (:class:`GustParams`): an extra acceleration on every vehicle during a time
   window, beyond the modelled wind noise V_o (the controllers' model does not contain it).
@@ -37,7 +41,7 @@ from scipy.spatial import cKDTree
 from mfg_autopilot.interface import HeardSummary, Neighbours, Observation
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.presets import MODES, make_controller
-from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, braking_stop_m, hold_acc_m_s2
+from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, braking_stop_m, hold_acc_m_s2, jerk_limited_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals, separation_guarantee
@@ -90,6 +94,7 @@ class SimConfig:
     link_float32: bool = True
     fail_vehicle: int | None = None   # vehicle K that stops following its controller (Hold) ...
     fail_at_s: float = 0.0            # ... from this time on
+    hold_jerk_m_s3: float = 4.0       # its Hold's jerk limit (PX4 MPC_JERK_AUTO); 0: none
     gust: GustParams | None = None
 
     @property
@@ -110,6 +115,33 @@ class SimConfig:
             raise ValueError(f"fail_vehicle must be in [0, {self.scenario.n - 1}], got {self.fail_vehicle}")
         if not self.fail_at_s >= 0:
             raise ValueError(f"fail_at_s must be >= 0, got {self.fail_at_s}")
+        if not (np.isfinite(self.hold_jerk_m_s3) and self.hold_jerk_m_s3 >= 0):
+            raise ValueError(f"hold_jerk_m_s3 must be finite and >= 0 (0: no jerk limit), got {self.hold_jerk_m_s3}")
+
+
+def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K: int, hold_pos_m: np.ndarray,
+                    hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float) -> tuple[np.ndarray, np.ndarray]:
+    """One control step with vehicle K in Hold, every physics sub-step apart (as the mock vehicle flies it): its
+    acceleration is the Hold PD's on its state then (``hold_acc_m_s2``), jerk-limited from the previous sub-step's
+    (``jerk_limited_m_s2``); the others hold ``acc_cmd``. The sub-steps draw the same noise and make the same
+    operations as one ``plant.step(acc_cmd, dt_s)`` does for them, so they move bit for bit as without the loop.
+    Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration)."""
+    k_sub = plant.params.substeps(dt_s)
+    h = dt_s / k_sub
+    acc = acc_cmd.copy()
+    applied, mean_k = None, np.zeros(2)
+    a_k = np.asarray(hold_acc_m_s2_prev, dtype=float)
+    for _ in range(k_sub):
+        target = hold_acc_m_s2(plant.states[K:K + 1], hold_pos_m, plant.params.acc_limit_m_s2)[0]
+        a_k = jerk_limited_m_s2(a_k, target, jerk_m_s3, h)
+        acc[K] = a_k
+        got = plant.step(acc, h)
+        a_k = got[K].copy()            # what the airframe applied (within its limit)
+        mean_k += a_k
+        applied = got if applied is None else applied
+    applied = applied.copy()
+    applied[K] = mean_k / k_sub
+    return applied, a_k
 
 
 def plant_params_for(preset: Preset, physics_dt_s: float = 0.1) -> PlantParams:
@@ -277,8 +309,15 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             K = cfg.fail_vehicle
             if hold_pos is None:
                 hold_pos = braking_stop_m(obs[K:K + 1])     # PX4's loiter point: the braking stop ahead
-            acc_cmd[K] = hold_acc_m_s2(obs[K:K + 1], hold_pos, plant.params.acc_limit_m_s2)[0]
-        acc_log[k] = plant.step(acc_cmd, dt)
+                # PX4's smoothing starts from the last setpoint's acceleration (the one it flew in offboard)
+                hold_acc = acc_log[k - 1, K].copy() if k > 0 else np.zeros(2)
+            if cfg.hold_jerk_m_s3 > 0:
+                acc_log[k], hold_acc = _step_with_hold(plant, acc_cmd, dt, K, hold_pos, hold_acc, cfg.hold_jerk_m_s3)
+            else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
+                acc_cmd[K] = hold_acc_m_s2(obs[K:K + 1], hold_pos, plant.params.acc_limit_m_s2)[0]
+                acc_log[k] = plant.step(acc_cmd, dt)
+        else:
+            acc_log[k] = plant.step(acc_cmd, dt)
         if cfg.gust is not None:
             t0, t1 = max(k * dt, cfg.gust.start_s), min((k + 1) * dt, cfg.gust.start_s + cfg.gust.duration_s)
             if t1 > t0:
@@ -312,7 +351,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         K = cfg.fail_vehicle
         others = np.ones(n, dtype=bool); others[K] = False
         arrived, _ = arrivals(pos, traj.dest_m, dt)
-        metrics.update(fail_vehicle=K, fail_at_s=cfg.fail_at_s,
+        metrics.update(fail_vehicle=K, fail_at_s=cfg.fail_at_s, hold_jerk_m_s3=cfg.hold_jerk_m_s3,
                        failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"] if K in p),
                        arrived_fraction_others=float(arrived[others].mean()) if n > 1 else None)
     if plan_pos is not None:

@@ -24,6 +24,8 @@ from __future__ import annotations
 import logging
 import math
 
+import numpy as np
+
 from mavlink_bridge import (
     PX4_HOLD,
     PX4_LAND,
@@ -161,6 +163,7 @@ class LifecycleMixin:
             self.landed = False
             self._landed_since_s = None
             self.plant.states[0, 2:4] = 0.0
+            self.applied_acc_m_s2 = np.zeros(2)     # PX4's FlightTaskAuto::reActivate on the ground: acceleration 0
             self.hold_pos_m = self.state[0:2].copy()
             log.info("lift-off")
         self._taken_off_since_arming = self._taken_off_since_arming or self.armed

@@ -47,6 +47,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("MPC_Z_P", 1.0, 0.0, 1.5, "1/s", "Altitude loop: vertical velocity setpoint per metre of z error (PX4)"),
     ParamSpec("MPC_Z_VEL_P_ACC", 4.0, 2.0, 15.0, "1/s", "Altitude loop: vertical acceleration per m/s of vz error (PX4)"),
     ParamSpec("NAV_MC_ALT_RAD", 0.8, 0.05, 200.0, "m", "AUTO.TAKEOFF is over within this of its altitude (PX4 navigator)"),
+    ParamSpec("MPC_JERK_AUTO", 4.0, 1.0, 80.0, "m/s^3", "Auto modes (Takeoff, Hold, Land): the largest change of acceleration per second (PX4 PositionSmoothing)"),
 )
 
 

@@ -34,6 +34,7 @@ __all__ = [
     "euler_maruyama_step",
     "saturate_norm",
     "hold_acc_m_s2",
+    "jerk_limited_m_s2",
     "braking_stop_m",
     "SwarmPlant",
 ]
@@ -233,6 +234,23 @@ def hold_acc_m_s2(
     """
     acc = -kp_per_s2 * (states[:, 0:2] - hold_pos_m) - kd_per_s * states[:, 2:4]
     return saturate_norm(acc, acc_limit_m_s2)
+
+
+def jerk_limited_m_s2(acc_prev_m_s2: np.ndarray, acc_target_m_s2: np.ndarray, jerk_m_s3: float, dt_s: float) -> np.ndarray:
+    """The acceleration of a multicopter in an auto mode (Takeoff, Hold, Land) after ``dt_s``: PX4 does not jump to the
+    new acceleration. Its auto modes (``FlightTaskAuto``) take their setpoints from ``PositionSmoothing``, a trajectory
+    whose acceleration changes at most ``MPC_JERK_AUTO`` (default 4 m/s^3, ``_updateTrajConstraints``), reset when the
+    mode begins to the last setpoint's acceleration (``FlightTaskAuto::activate``: the offboard acceleration a vehicle
+    flew until then). Modelled as a rate limit on the change of the acceleration: acc_prev + the change towards
+    ``acc_target_m_s2`` (here the Hold PD's, ``hold_acc_m_s2``) capped at ``jerk_m_s3`` x ``dt_s`` in norm. So a vehicle
+    that enters Hold at cruise builds its braking up over ~0.5 s (2 m/s^2 at 4 m/s^3) instead of braking at the
+    airframe's limit from the first instant. ``jerk_m_s3`` <= 0 or infinite: no limit (``acc_target_m_s2``).
+    Shapes (..., 2)."""
+    acc_target_m_s2 = np.asarray(acc_target_m_s2, dtype=float)
+    if not (math.isfinite(jerk_m_s3) and jerk_m_s3 > 0.0):
+        return acc_target_m_s2
+    acc_prev_m_s2 = np.asarray(acc_prev_m_s2, dtype=float)
+    return acc_prev_m_s2 + saturate_norm(acc_target_m_s2 - acc_prev_m_s2, jerk_m_s3 * dt_s)
 
 
 class SwarmPlant:

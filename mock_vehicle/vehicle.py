@@ -23,7 +23,9 @@ for the rest). Signing what the vehicle sends is the port's job (``MavlinkPort``
 
 Dynamics (air start, the default): frozen at the initial state until the first OFFBOARD entry
 (the vehicle hovers at its slot); then OFFBOARD integrates the held setpoint, every other mode PX4
-Hold (``hold_acc_m_s2`` around PX4's braking stop ahead of where it began, ``plant.braking_stop_m``). A setpoint PX4's position controller refuses
+Hold (``hold_acc_m_s2`` around PX4's braking stop ahead of where it began, ``plant.braking_stop_m``); in the auto
+modes (Takeoff, Hold, Land) the acceleration changes at most MPC_JERK_AUTO from the one flown before, every physics
+sub-step (``plant.jerk_limited_m_s2``: PX4's ``PositionSmoothing``). A setpoint PX4's position controller refuses
 (``setpoint.classify_setpoint``: an axis without a term, x/y not in pairs, a NaN in a used field)
 keeps OFFBOARD but flies PX4's "stop and wait" (velocity 0). Ground start (``start_on_ground``) and
 the altitude loop: ``lifecycle``. Own EKF origin (``origin``): ``telemetry`` and ``geo``.
@@ -45,6 +47,7 @@ from mavlink_bridge import (
     PX4_LAND,
     PX4_OFFBOARD,
     PX4_POSCTL,
+    PX4_TAKEOFF,
     BadData,
     CommandAck,
     CommandInt,
@@ -72,7 +75,7 @@ from mavlink_bridge.ratelog import RejectLog
 from .geo import LocalFrame
 from .lifecycle import POSCTL_DT_S, LifecycleMixin
 from .params import ParamTable
-from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, saturate_norm
+from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, jerk_limited_m_s2, saturate_norm
 from .proximity import traffic_reports
 from .setpoint import SETPOINT_LIMITS, check_setpoint, classify_setpoint  # noqa: F401  (check_setpoint: re-exported)
 from .telemetry import FAST_TELEMETRY, TELEMETRY_IDS, TelemetryMixin
@@ -451,17 +454,33 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
     def _moving(self) -> bool:
         return self.flying and self.armed and not self.landed
 
+    AUTO_MODES = (PX4_TAKEOFF, PX4_HOLD, PX4_LAND)
+    """PX4 flies these with ``FlightTaskAuto``, whose setpoints come from the jerk-limited ``PositionSmoothing``."""
+
     def _step(self, dt_s: float) -> None:
+        """Advance the horizontal plant by ``dt_s`` (in an auto mode sub-step by sub-step, the acceleration jerk-limited
+        from the one flown before: ``plant.jerk_limited_m_s2``), then the altitude loop."""
+        jerk = self.params["MPC_JERK_AUTO"]
+        if self.mode in self.AUTO_MODES:
+            k = self.plant.params.substeps(dt_s)
+            for _ in range(k):
+                self._step_horizontal(dt_s / k, jerk)
+        else:
+            self._step_horizontal(dt_s, None)
+        self._vertical(dt_s)
+
+    def _step_horizontal(self, dt_s: float, jerk_m_s3: float | None) -> None:
         acc = self._current_acc_m_s2()
         if not np.isfinite(acc).all():
             self.rejects.reject("non-finite acceleration", f"{acc}: holding instead")
             acc = hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
+        if jerk_m_s3 is not None:
+            acc = jerk_limited_m_s2(self.applied_acc_m_s2.reshape(1, 2), acc, jerk_m_s3, dt_s)
         before = self.plant.states.copy()
         self.applied_acc_m_s2 = self.plant.step(acc, dt_s)[0]
         if not np.isfinite(self.plant.states).all():
             self.rejects.reject("non-finite plant state", "restoring the previous state")
             self.plant.states = before
-        self._vertical(dt_s)
 
     def _lockstep_step(self) -> None:
         """Lockstep: one control step of dt_s with the setpoint just received, then telemetry.

@@ -134,23 +134,25 @@ def test_failsafe_after_com_of_loss_t_and_hold_keeps_position():
     assert np.linalg.norm(v.state[0:2] - hold_at) < 3.0 and np.all(np.isfinite(v.state))
 
 
-def _flying_north_in_offboard():
+def _flying_north_in_offboard(cruise_s: float = 0.0):
     """A vehicle flying north at ~4 m/s in OFFBOARD with no wind noise (the along-track motion after a mode change is
-    that mode's alone): (vehicle, clock, north position, north velocity)."""
+    that mode's alone): (vehicle, clock, north position, north velocity). It accelerates at 2 m/s^2 to the end, or
+    cruises for its last ``cruise_s`` (acceleration 0)."""
     calm = WindParams(mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
     v, clock, _ = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
     v.handle(cmd(400, 1))
     stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
     v.handle(cmd(176, 1, 6))
     stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
+    stream(v, clock, cruise_s, acc=(0.0, 0.0, 0.0))
     x0, vx0 = float(v.state[0]), float(v.state[2])
     assert v.mode == PX4_OFFBOARD and vx0 > 3.0
     return v, clock, x0, vx0
 
 
 def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
-    # given a vehicle flying north at ~4 m/s in OFFBOARD
-    v, clock, x0, vx0 = _flying_north_in_offboard()
+    # given a vehicle cruising north at ~4 m/s in OFFBOARD
+    v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=0.5)
     # when it is switched to Hold (MAV_CMD_DO_SET_MODE, AUTO.LOITER)
     v.handle(cmd(176, 1, 4, 3))
     assert v.mode == PX4_HOLD
@@ -165,6 +167,30 @@ def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
         v.tick()
         xs.append(float(v.state[0]))
     assert np.all(np.diff(xs) >= -1e-3) and abs(xs[-1] - v.hold_pos_m[0]) < 0.3, (max(xs), xs[-1], v.hold_pos_m)
+
+
+@pytest.mark.parametrize("cruise_s", [0.5, 0.0])
+def test_hold_builds_its_braking_up_at_mpc_jerk_auto_from_the_acceleration_flown_before(cruise_s):
+    # given a vehicle flying north at ~4 m/s in OFFBOARD, cruising (acceleration 0) or still accelerating at 2 m/s^2
+    v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=cruise_s)
+    a_before = float(v.applied_acc_m_s2[0])
+    # when it is switched to Hold, and the physics advances sub-step by sub-step (0.1 s)
+    v.handle(cmd(176, 1, 4, 3))
+    acc = [a_before]
+    for _ in range(30):
+        clock.t += 0.1
+        v.tick()
+        acc.append(float(v.applied_acc_m_s2[0]))
+    # then the acceleration changes by at most MPC_JERK_AUTO (4 m/s^3) x 0.1 s per sub-step (PX4's PositionSmoothing,
+    # reset to the last setpoint's acceleration), so the braking reaches the airframe's 2 m/s^2 only after
+    # (a_before + 2) / 4 s, and it does reach it (the braking stop needs it)
+    assert v.params["MPC_JERK_AUTO"] == 4.0
+    assert np.max(np.abs(np.diff(acc))) <= 0.4 + 1e-9, np.diff(acc)
+    ramp = int(round((a_before + 2.0) / 0.4))
+    assert acc[ramp - 1] > -2.0 + 1e-9 and min(acc) == pytest.approx(-2.0, abs=1e-9), acc
+    # and a Hold entered at cruise loses less speed in its first 0.5 s than braking at the limit would (1 m/s)
+    if cruise_s:
+        assert 0.4 <= a_before - acc[5] <= 2.0 and np.mean(acc[1:6]) > -1.3, acc
 
 
 def test_position_mode_in_flight_locks_where_px4s_braking_setpoint_stops():

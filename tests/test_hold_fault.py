@@ -1,0 +1,70 @@
+"""The simulator's failed vehicle flies PX4's Hold: towards the braking stop, its braking built up at MPC_JERK_AUTO
+(mfg_swarm.sim._step_with_hold, mock_vehicle.plant.jerk_limited_m_s2), as the mock vehicle flies it."""
+
+import numpy as np
+import pytest
+
+from mfg_autopilot.presets import preset_by_name
+from mfg_swarm import sim
+from mfg_swarm.scenarios import make_scenario
+from mock_vehicle.plant import SwarmPlant, braking_stop_m, jerk_limited_m_s2, saturate_norm
+
+
+def test_jerk_limit_moves_towards_the_target_by_at_most_jerk_times_dt():
+    prev = np.array([[0.4, 0.0], [0.0, 0.0], [1.0, 1.0]])
+    target = np.array([[-2.0, 0.0], [0.1, -0.1], [1.0, 1.0]])
+    got = jerk_limited_m_s2(prev, target, 4.0, 0.1)
+    np.testing.assert_allclose(got[0], [0.0, 0.0], atol=1e-12)        # 0.4 m/s^2 per 0.1 s
+    np.testing.assert_array_equal(got[1:], target[1:])                  # within reach: the target
+    np.testing.assert_array_equal(jerk_limited_m_s2(prev, target, 0.0, 0.1), target)      # 0: no limit
+    np.testing.assert_array_equal(jerk_limited_m_s2(prev, target, float("inf"), 0.1), target)
+
+
+def test_the_other_vehicles_move_bit_for_bit_as_in_one_plant_step():
+    # given two identical plants of 30 vehicles and one command
+    sc = make_scenario("paper", 30)
+    params = sim.plant_params_for(preset_by_name("default"))
+    a, b = SwarmPlant(sc.initial_pos_m, params, seed=5), SwarmPlant(sc.initial_pos_m, params, seed=5)
+    acc = np.random.default_rng(0).uniform(-1.5, 1.5, (30, 2))
+    K = 7
+    hold = braking_stop_m(a.states[K:K + 1])
+    # when one steps with vehicle K in Hold (sub-step by sub-step) and the other with one plant.step
+    applied, last = sim._step_with_hold(a, acc, 0.5, K, hold, np.zeros(2), 4.0)
+    b.step(acc, 0.5)
+    # then every other vehicle is where one plant.step puts it, bit for bit, and K is not
+    others = np.arange(30) != K
+    np.testing.assert_array_equal(a.states[others], b.states[others])
+    np.testing.assert_array_equal(applied[others], saturate_norm(acc, params.acc_limit_m_s2)[others])
+    assert not np.array_equal(a.states[K], b.states[K])
+    # K's acceleration moved from 0 by at most 4 m/s^3 x 0.5 s, and the mean over the sub-steps is logged
+    assert np.linalg.norm(last) <= 2.0 + 1e-12
+    assert np.linalg.norm(applied[K]) <= 4.0 * 0.1 * 3 + 1e-12       # mean of 0.4, 0.8, ..., 2.0 at most
+
+
+@pytest.mark.parametrize("jerk", [4.0, 0.0])
+def test_the_failed_vehicle_builds_its_braking_up_at_the_jerk_limit(jerk):
+    # given paper N = 25 with vehicle 7 failing into Hold at 10 s, PX4's jerk limit (4 m/s^3) or none
+    cfg = sim.SimConfig(scenario=make_scenario("paper", 25), mode="mfg", preset=preset_by_name("default"), seed=1,
+                        steps=30, fail_vehicle=7, fail_at_s=10.0, hold_jerk_m_s3=jerk)
+    traj, metrics = sim.simulate(cfg, progress=False)
+    kf = 20
+    a = traj.acc_m_s2[:, 7]
+    change = np.linalg.norm(a[kf] - a[kf - 1])
+    if jerk:
+        # then the first Hold step's mean acceleration is at most the ramp's (0.4 + ... + 2.0) / 5 = 1.2 m/s^2 away
+        # from the last command, and the next step brakes near the airframe's limit
+        assert change <= 1.2 + 1e-9 and np.linalg.norm(a[kf + 1]) > 1.5, (a[kf - 1], a[kf], a[kf + 1])
+    else:
+        # without the limit it brakes at the airframe's 2 m/s^2 from the first instant
+        assert np.linalg.norm(a[kf]) == pytest.approx(2.0, abs=1e-6) and change > 1.5
+    assert metrics["hold_jerk_m_s3"] == jerk
+    # and it stops where PX4's navigator put the loiter point (its braking stop), whichever way it braked
+    speed = np.linalg.norm(traj.vel_m_s[-1, 7])
+    assert speed < 0.3
+
+
+def test_a_negative_or_non_finite_jerk_is_refused():
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="hold_jerk_m_s3"):
+            sim.SimConfig(scenario=make_scenario("paper", 4), mode="mfg", preset=preset_by_name("default"),
+                          fail_vehicle=1, hold_jerk_m_s3=bad)
