@@ -1,8 +1,9 @@
 """The closest any controller can keep the UAV right behind a vehicle that fails into Hold (mfg_swarm/limits.py).
 
-    .venv/bin/python bench/onset_bound.py [--v 4] [--a-max 2] [--a-brake 2]
+    .venv/bin/python bench/onset_bound.py [--v 4] [--a-max 2] [--a-brake 2] [--jerk 4]
 
-Prints, for the reaction delay (0 to the default controller's 0.5 s control period) and the gap to the failed vehicle
+Prints, for the Hold's braking (at once: ``sim --hold-jerk 0``; built up at PX4's MPC_JERK_AUTO: the default), the
+reaction delay (0 to two of the default controller's 0.5 s control periods) and the gap to the failed vehicle
 in the lane (the 1.41 m lattice of paper / crossing / swap4 / circle, the 1.4 m cruise of the spread dense pad, 2 m),
 the largest smallest distance over any acceleration of norm a_max (best constant direction and best piecewise-constant
 one), against half the start spacing that issue 18 asks for.
@@ -22,14 +23,18 @@ def main(argv=None) -> None:
     ap.add_argument("--v", type=float, default=4.0, help="stream speed, m/s")
     ap.add_argument("--a-max", type=float, default=2.0, help="the follower's acceleration limit, m/s^2")
     ap.add_argument("--a-brake", type=float, default=2.0, help="the failed vehicle's braking in Hold, m/s^2")
+    ap.add_argument("--jerk", type=float, default=4.0, help="PX4's Hold builds its braking up at this, m/s^3 (MPC_JERK_AUTO)")
     a = ap.parse_args(argv)
-    print("| gap in the lane (m) | delay (s) | best constant direction: clearance (m), direction (deg) | best piecewise (m) | half the 1.41 m spacing |")
-    print("|---|---|---|---|---|")
-    for gap in (np.sqrt(2.0), 2.0):
-        for delay in (0.0, 0.1, 0.25, 0.5):
-            r = follower_best_clearance_m(v_m_s=a.v, gap_m=gap, delay_s=delay, a_brake_m_s2=a.a_brake, a_max_m_s2=a.a_max)
-            print(f"| {gap:.2f} | {delay:.2f} | {r['constant_m']:.3f}, {r['direction_deg']:.0f} | {r['piecewise_m']:.3f} | "
-                  f"{'kept' if r['piecewise_m'] >= np.sqrt(2.0) / 2 else 'not reachable'} |")
+    print("| Hold's braking | gap in the lane (m) | delay (s) | best constant direction: clearance (m), direction (deg) | best piecewise (m) | half the 1.41 m spacing |")
+    print("|---|---|---|---|---|---|")
+    for jerk in (None, a.jerk):
+        hold = "at once" if jerk is None else f"{jerk:g} m/s^3"
+        for gap in (np.sqrt(2.0), 2.0):
+            for delay in (0.0, 0.25, 0.5, 1.0):
+                r = follower_best_clearance_m(v_m_s=a.v, gap_m=gap, delay_s=delay, a_brake_m_s2=a.a_brake,
+                                              a_max_m_s2=a.a_max, jerk_m_s3=jerk)
+                print(f"| {hold} | {gap:.2f} | {delay:.2f} | {r['constant_m']:.3f}, {r['direction_deg']:.0f} | {r['piecewise_m']:.3f} | "
+                      f"{'kept' if r['piecewise_m'] >= np.sqrt(2.0) / 2 else 'not reachable'} |")
 
 
 if __name__ == "__main__":

@@ -1,19 +1,19 @@
 """Physical limits of what any controller can keep (issue 18): the UAV right behind a vehicle that fails into Hold.
 
-A vehicle that fails into Hold brakes along its track at ``a_brake_m_s2`` from the first instant (the simulator's and
-the mock's Hold, a saturated PD towards PX4's braking stop). The UAV ``gap_m`` behind it in its lane, at the same speed
+A vehicle that fails into Hold brakes along its track at ``a_brake_m_s2``: from the first instant (``jerk_m_s3`` None:
+the simulator's Hold with ``--hold-jerk 0``, a saturated PD towards PX4's braking stop), or building it up at
+``jerk_m_s3`` (PX4's Hold, MPC_JERK_AUTO = 4 m/s^3: its setpoints come from the jerk-limited PositionSmoothing; the
+simulator's and the mock's default). The UAV ``gap_m`` behind it in its lane, at the same speed
 ``v_m_s``, can react only ``delay_s`` later (the braking is seen in the sensed states one control period later) and
 then with at most ``a_max_m_s2``. Relative to the failed vehicle its along-track acceleration is a + a_brake >= 0 (it
-can at best cancel the braking), so it keeps closing at >= a_brake x delay until the vehicle stops; the question is
+can at best cancel the braking), so it keeps closing at >= the speed the vehicle lost in the delay until it stops; the question is
 how far across its track it can be when it draws abeam.
 
 ``follower_best_clearance_m`` answers it numerically: the largest smallest distance over the flight, maximised over
 accelerations of norm a_max in a direction that is piecewise constant over ``step_s`` (each piece free), from the best
 constant direction and seeded restarts (L-BFGS-B on a soft minimum). A maximum over a family of controls is a lower
 bound of the true optimum; the constant-direction optimum and the piecewise-free one agree to about a millimetre
-(tests/test_limits.py), which is the evidence that the bound is the optimum. Not modelled: PX4's jerk-limited
-trajectory (the Hold setpoint of a real PX4 is smoothed at MPC_JERK_AUTO, so its braking builds up over ~0.5 s and a
-real follower has more room than here).
+(tests/test_limits.py), which is the evidence that the bound is the optimum.
 
 Command: ``.venv/bin/python bench/onset_bound.py`` (a table over the delay and the gap).
 """
@@ -23,11 +23,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-__all__ = ["follower_best_clearance_m"]
+__all__ = ["follower_best_clearance_m", "failed_along_track_m"]
 
 
 def _distances(theta: np.ndarray, v_m_s: float, gap_m: float, delay_s: float, a_brake_m_s2: float, a_max_m_s2: float,
-               step_s: float, horizon_s: float) -> np.ndarray:
+               step_s: float, horizon_s: float, jerk_m_s3: float | None = None) -> np.ndarray:
     """Distance follower - failed vehicle every step_s (exact at the samples: piecewise-constant accelerations)."""
     n_wait = int(round(delay_s / step_s))
     n = int(round(horizon_s / step_s))
@@ -39,19 +39,38 @@ def _distances(theta: np.ndarray, v_m_s: float, gap_m: float, delay_s: float, a_
     vy = np.concatenate([[0.0], np.cumsum(ay) * step_s])
     x = -gap_m + np.concatenate([[0.0], np.cumsum(0.5 * (vx[1:] + vx[:-1]) * step_s)])
     y = np.concatenate([[0.0], np.cumsum(0.5 * (vy[1:] + vy[:-1]) * step_s)])
-    t_stop = v_m_s / a_brake_m_s2
-    tt = np.minimum(t, t_stop)
-    x_failed = v_m_s * tt - 0.5 * a_brake_m_s2 * tt * tt
-    return np.hypot(x - x_failed, y)
+    return np.hypot(x - failed_along_track_m(t, v_m_s, a_brake_m_s2, jerk_m_s3), y)
+
+
+def failed_along_track_m(t_s: np.ndarray, v_m_s: float, a_brake_m_s2: float, jerk_m_s3: float | None = None) -> np.ndarray:
+    """How far the failed vehicle has gone along its track t_s after it failed: it brakes from v_m_s at a_brake_m_s2,
+    from the first instant (``jerk_m_s3`` None or 0) or building the braking up from 0 at ``jerk_m_s3`` (PX4's
+    Hold: MPC_JERK_AUTO), until it stops."""
+    t = np.asarray(t_s, dtype=float)
+    if not jerk_m_s3:
+        tt = np.minimum(t, v_m_s / a_brake_m_s2)
+        return v_m_s * tt - 0.5 * a_brake_m_s2 * tt * tt
+    t1 = a_brake_m_s2 / jerk_m_s3                       # the ramp's end
+    if v_m_s <= 0.5 * jerk_m_s3 * t1 * t1:              # it stops on the ramp
+        t1 = np.sqrt(2.0 * v_m_s / jerk_m_s3)
+        tt = np.minimum(t, t1)
+        return v_m_s * tt - jerk_m_s3 * tt ** 3 / 6.0
+    v1 = v_m_s - 0.5 * jerk_m_s3 * t1 * t1
+    x1 = v_m_s * t1 - jerk_m_s3 * t1 ** 3 / 6.0
+    t_ramp = np.minimum(t, t1)
+    tt = np.clip(t - t1, 0.0, v1 / a_brake_m_s2)
+    return np.where(t <= t1, v_m_s * t_ramp - jerk_m_s3 * t_ramp ** 3 / 6.0, x1 + v1 * tt - 0.5 * a_brake_m_s2 * tt * tt)
 
 
 def follower_best_clearance_m(v_m_s: float = 4.0, gap_m: float = np.sqrt(2.0), delay_s: float = 0.5,
                               a_brake_m_s2: float = 2.0, a_max_m_s2: float = 2.0, step_s: float = 0.05,
-                              horizon_s: float = 4.0, restarts: int = 6, seed: int = 0) -> dict:
+                              horizon_s: float = 4.0, restarts: int = 6, seed: int = 0,
+                              jerk_m_s3: float | None = None) -> dict:
     """{"constant_m": best over constant directions, "piecewise_m": best over piecewise-constant ones (>= constant),
     "direction_deg": the best constant direction from straight ahead (180: full braking)}. Distances at the step_s
-    samples; the failed vehicle brakes from t = 0, the follower acts from delay_s (a multiple of step_s)."""
-    args = (v_m_s, gap_m, delay_s, a_brake_m_s2, a_max_m_s2, step_s, horizon_s)
+    samples; the failed vehicle brakes from t = 0 (at once, or built up at ``jerk_m_s3``: PX4's Hold), the follower
+    acts from delay_s (a multiple of step_s)."""
+    args = (v_m_s, gap_m, delay_s, a_brake_m_s2, a_max_m_s2, step_s, horizon_s, jerk_m_s3)
     dirs = np.linspace(0.0, np.pi, 721)     # by symmetry one side
     const = np.array([_distances(np.array(th), *args).min() for th in dirs])
     i = int(np.argmax(const))

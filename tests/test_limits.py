@@ -27,3 +27,28 @@ def test_the_clearance_falls_with_the_delay_and_rises_with_the_gap():
     c = [follower_best_clearance_m(delay_s=d, restarts=0)["constant_m"] for d in (0.0, 0.1, 0.25, 0.5)]
     assert all(a > b for a, b in zip(c, c[1:]))
     assert follower_best_clearance_m(gap_m=2.0, restarts=0)["constant_m"] > c[-1]
+
+
+def test_the_failed_vehicles_track_builds_its_braking_up_at_the_jerk():
+    # given PX4's Hold (braking built up from 0 at MPC_JERK_AUTO = 4 m/s^3 to 2 m/s^2) from 4 m/s
+    from mfg_swarm.limits import failed_along_track_m
+    t = np.linspace(0.0, 4.0, 40_001)
+    a = -np.minimum(4.0 * t, 2.0)
+    v = np.maximum(4.0 + np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * np.diff(t))]), 0.0)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+    # then the closed form is the integral of it (to the trapezoid rule's error), and it stops later than braking
+    # at once: v^2 / (2 a) + v a / (2 j) - a^3 / (24 j^2) = 4 + 1 - 1/48 m against 4 m
+    np.testing.assert_allclose(failed_along_track_m(t, 4.0, 2.0, 4.0), x, atol=1e-6)
+    assert abs(failed_along_track_m(np.array([10.0]), 4.0, 2.0, 4.0)[0] - (5.0 - 1.0 / 48.0)) < 1e-9
+    assert abs(failed_along_track_m(np.array([10.0]), 4.0, 2.0)[0] - 4.0) < 1e-9
+    # a slow vehicle stops on the ramp: v = j t^2 / 2
+    assert abs(failed_along_track_m(np.array([10.0]), 0.5, 2.0, 4.0)[0] - 0.5 * 0.5 * 2.0 / 3.0) < 1e-9
+
+
+def test_behind_px4s_jerk_limited_hold_one_control_period_leaves_room_for_half_the_spacing_two_do_not():
+    """PX4's Hold builds its braking up at MPC_JERK_AUTO (4 m/s^3): the UAV 1.41 m behind, reacting one 0.5 s period
+    late, can keep ~0.87 m (> 0.707, half the lattice spacing); reacting two periods late, ~0.19 m."""
+    one = follower_best_clearance_m(delay_s=0.5, restarts=1, jerk_m_s3=4.0)
+    assert 0.8 < one["constant_m"] < 0.95 and one["piecewise_m"] >= np.sqrt(2.0) / 2
+    two = follower_best_clearance_m(delay_s=1.0, restarts=1, jerk_m_s3=4.0)
+    assert two["piecewise_m"] < np.sqrt(2.0) / 2
