@@ -62,6 +62,13 @@ def _kernel_arg(a: np.ndarray, dtype) -> np.ndarray:
     return a if a.flags.writeable else a.copy()
 
 
+def nearest_per_row(rows: np.ndarray, d_m: np.ndarray) -> np.ndarray:
+    """Indices of each row's nearest entry: rows (m,) the row of each entry, d_m (m, 2) its offset from that row's
+    vehicle; sorted by (row, squared distance), each row's first (ties: the earlier entry)."""
+    order = np.lexsort((d_m[:, 0] ** 2 + d_m[:, 1] ** 2, rows))
+    return order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+
+
 def braking_off_plan(q: np.ndarray, v_prev: np.ndarray, a_plan: np.ndarray, dt_s: float, brake_min_m_s2: float,
                      beyond, a_own: np.ndarray | None = None) -> np.ndarray:
     """(m,) bool: sensed states q (m, 4) that brake against their plan particle by more than brake_min_m_s2 and
@@ -654,9 +661,7 @@ class DefaultMFGController(_DefaultBase):
             return None
         alpha = detour_onset(dist, dp)
         rows = sn.owner[idx]
-        d = st[idx, 0:2] - own[rows, 0:2]
-        order = np.lexsort((d[:, 0] ** 2 + d[:, 1] ** 2, rows))
-        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+        first = nearest_per_row(rows, st[idx, 0:2] - own[rows, 0:2])
         mask = np.zeros(self.n, dtype=bool)
         o, al, side = np.zeros((self.n, 2)), np.zeros(self.n), np.zeros(self.n)
         r = rows[first]
@@ -731,10 +736,7 @@ class DefaultMFGController(_DefaultBase):
         if idx.size == 0:
             return None
         rows = sn.owner[idx]
-        d = sn.states[idx, 0:2] - own[rows, 0:2]
-        # the nearest hovering threat of each row: sort by (row, distance) and keep each row's first
-        order = np.lexsort((d[:, 0] ** 2 + d[:, 1] ** 2, rows))
-        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]]
+        first = nearest_per_row(rows, sn.states[idx, 0:2] - own[rows, 0:2])      # the nearest hovering threat of each row
         r, q = rows[first], sn.states[idx[first], 0:2]
         part = self.plan.states[self.own_index[r]]
         vp = part[:, 2:4]
