@@ -3,6 +3,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mfg_autopilot.presets import preset_by_name
 from mfg_swarm import sim
@@ -18,6 +20,26 @@ def test_jerk_limit_moves_towards_the_target_by_at_most_jerk_times_dt():
     np.testing.assert_array_equal(got[1:], target[1:])                  # within reach: the target
     np.testing.assert_array_equal(jerk_limited_m_s2(prev, target, 0.0, 0.1), target)      # 0: no limit
     np.testing.assert_array_equal(jerk_limited_m_s2(prev, target, float("inf"), 0.1), target)
+
+
+_acc = st.tuples(st.floats(-5.0, 5.0), st.floats(-5.0, 5.0))
+
+
+@settings(max_examples=300, deadline=None)
+@given(prev=_acc, target=_acc, jerk=st.floats(0.5, 80.0), dt=st.floats(0.001, 0.5))
+def test_jerk_limit_property(prev, target, jerk, dt):
+    # the result is on the segment from the previous acceleration to the target, at most jerk x dt from the previous,
+    # and the target itself when that is within reach
+    p, t = np.array(prev), np.array(target)
+    got = jerk_limited_m_s2(p, t, jerk, dt)
+    step, gap = np.linalg.norm(got - p), np.linalg.norm(t - p)
+    assert step <= jerk * dt * (1 + 1e-12) + 1e-12
+    d, g = got - p, t - p
+    assert abs(d[0] * g[1] - d[1] * g[0]) <= 1e-9 * max(1.0, gap) and np.dot(d, g) >= -1e-12
+    if gap <= jerk * dt:
+        np.testing.assert_allclose(got, t, atol=1e-12)
+    else:
+        assert step == pytest.approx(jerk * dt, rel=1e-9)
 
 
 def test_the_other_vehicles_move_bit_for_bit_as_in_one_plant_step():
