@@ -14,7 +14,8 @@ Fault events (``SimConfig``):
 - ``fail_vehicle`` K, ``fail_at_s`` T: from the first control instant t_k >= T, vehicle K
   stops following its controller and holds (PX4 Hold: ``mock_vehicle.plant.hold_acc_m_s2`` towards
   the braking stop ahead of its state at t_k, ``braking_stop_m``, as PX4's navigator sets it). Its acceleration
-  changes from its last commanded one at most ``hold_jerk_m_s3`` (PX4's MPC_JERK_AUTO, 4 m/s^3:
+  changes from the one it flew last (before the failure: its last command, within the airframe's limit) at most
+  ``hold_jerk_m_s3`` (PX4's MPC_JERK_AUTO, 4 m/s^3:
   ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step, as the mock vehicle flies Hold). 0: no jerk
   limit, the PD computed at t_k and held over the step, braking at the airframe's limit from the first instant
   (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare). It still broadcasts

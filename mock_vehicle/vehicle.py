@@ -460,9 +460,8 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
     def _step(self, dt_s: float) -> None:
         """Advance the horizontal plant by ``dt_s`` (in an auto mode sub-step by sub-step, the acceleration jerk-limited
         from the one flown before: ``plant.jerk_limited_m_s2``), then the altitude loop."""
-        jerk = self.params["MPC_JERK_AUTO"]
         if self.mode in self.AUTO_MODES:
-            k = self.plant.params.substeps(dt_s)
+            jerk, k = self.params["MPC_JERK_AUTO"], self.plant.params.substeps(dt_s)
             for _ in range(k):
                 self._step_horizontal(dt_s / k, jerk)
         else:
