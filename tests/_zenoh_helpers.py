@@ -69,8 +69,9 @@ class Proc:
         try:
             line = self.lines.get(timeout=timeout_s)
         except queue.Empty:
-            raise TimeoutError(f"{self.name}: no output line within {timeout_s} s; "
-                               f"rc={self.p.poll()} stderr tail:\n" + "\n".join(self.stderr_lines[-15:]))
+            raise TimeoutError(f"{self.name}: no output line within {timeout_s} s; rc={self.p.poll()}; "
+                               f"stdout lines read so far (tail):\n" + "\n".join(self.all_lines[-15:])
+                               + "\nstderr tail:\n" + "\n".join(self.stderr_lines[-15:]))
         self.all_lines.append(line)
         return line
 

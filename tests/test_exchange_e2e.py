@@ -265,7 +265,8 @@ def test_watcher_example_prints_decoded_states(swarm_name):
             b.initial_exchange([151.5, 100.0, 1.0, -1.0], 10)
             t.join(10)
             w = Proc([sys.executable, str(REPO / "examples" / "watch_swarm.py"), "--swarm",
-                      swarm_name, "--connect", ep(port), "--count", "6", "--duration", "20"],
+                      swarm_name, "--connect", ep(port), "--count", "6", "--duration", "20",
+                      "--vehicles", "2"],
                      "watcher", stdin_pipe=False)
             procs.append(w)
             lines = []
