@@ -319,3 +319,43 @@ def test_formation_sums_equal_the_numpy_formulation():
     ref = np.stack([np.bincount(owner[sel], weights=states[sel, c] - plan[j[sel], c], minlength=n) for c in range(4)], axis=1)
     assert 0 < sel.size < m
     assert np.array_equal(cnt, ref_cnt) and np.array_equal(sums, ref)
+
+
+def _distinct_numpy(q, ids):
+    """The numpy formulation safety.kernels.distinct_dense replaced (guidance.controller._distinct, dense ids)."""
+    present = np.zeros(int(ids.max()) + 1, dtype=bool)
+    present[ids] = True
+    rep = np.empty(present.size, dtype=np.int64)
+    rep[ids] = np.arange(ids.size)
+    first = rep[present]
+    inv = (np.cumsum(present) - 1)[ids]
+    return (first, inv) if np.array_equal(q[first][inv], q) else None
+
+
+@pytest.mark.parametrize("case", ["same", "one_differs", "nan", "single"])
+def test_distinct_dense_equals_the_numpy_formulation(case):
+    """safety.kernels.distinct_dense (the MFG backstop's one-entry-per-sensed-vehicle step) decides as the numpy code
+    it replaced: None (ok False) exactly when two entries of an id differ or a state is NaN; otherwise the same distinct
+    ids in ascending order, the same ranks, the same states (its representative may be another entry of the id)."""
+    from mfg_autopilot.safety.kernels import distinct_dense
+
+    rng = np.random.default_rng(31)
+    for trial in range(40):
+        n_ids = int(rng.integers(1, 60))
+        m = 1 if case == "single" else int(rng.integers(1, 400))
+        ids = rng.integers(0, n_ids, m).astype(np.int64)
+        table = rng.normal(0.0, 3.0, (n_ids, 4))
+        q = table[ids].copy()
+        if case == "one_differs" and m > 1 and np.unique(ids).size < m:
+            dup = np.flatnonzero(np.bincount(ids)[ids] > 1)
+            q[rng.choice(dup), rng.integers(4)] += 1e-12
+        if case == "nan":
+            q[rng.integers(m), rng.integers(4)] = np.nan
+        want = _distinct_numpy(q, ids)
+        first, inv, ok = distinct_dense(q, ids, int(ids.max()) + 1)
+        assert ok == (want is not None), (case, trial)
+        if ok:
+            assert np.array_equal(ids[first], ids[want[0]]) and np.array_equal(inv, want[1])
+            assert np.array_equal(q[first], q[want[0]]) and np.array_equal(q[first][inv], q)
+    if case == "one_differs":
+        assert not distinct_dense(np.array([[0.0, 0, 0, 0], [0.0, 0, 0, 1e-12]]), np.array([3, 3]), 4)[2]

@@ -40,7 +40,7 @@ from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
 from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
-from mfg_autopilot.safety.kernels import braking_scan, formation_sums
+from mfg_autopilot.safety.kernels import braking_scan, distinct_dense, formation_sums
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
 
@@ -805,20 +805,17 @@ class DefaultMFGController(_DefaultBase):
         """(first, inv): one representative entry per distinct id and each entry's rank among them (q[first][inv] is q),
         where every entry of an id carries the same state (the same vehicle sensed by many rows); None where ids are
         missing or two entries of one id differ. Distinct ids ascending, as np.unique gives them, in O(m + max id)
-        instead of a sort where the ids are small; the representative of an id is one of its entries."""
+        instead of a sort where the ids are small (safety.kernels.distinct_dense, compiled: at N = 10,000 the numpy
+        version's gathers and full comparison were ~45 ms of a ~250 ms control step); the representative of an id is
+        one of its entries."""
         if ids is None or len(ids) != q.shape[0] or q.shape[0] == 0:
             return None
         ids = np.asarray(ids, dtype=np.int64)
         if _dense_ids(ids):
-            present = np.zeros(int(ids.max()) + 1, dtype=bool)
-            present[ids] = True
-            rep = np.empty(present.size, dtype=np.int64)
-            rep[ids] = np.arange(ids.size)
-            first = rep[present]
-            inv = (np.cumsum(present) - 1)[ids]
-        else:
-            _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
-            inv = inv.reshape(-1)
+            first, inv, ok = distinct_dense(_kernel_arg(q, np.float64), _kernel_arg(ids, np.int64), int(ids.max()) + 1)
+            return (first, inv) if ok else None
+        _, first, inv = np.unique(ids, return_index=True, return_inverse=True)
+        inv = inv.reshape(-1)
         if not np.array_equal(q[first][inv], q):
             return None
         return first, inv

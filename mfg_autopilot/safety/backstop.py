@@ -182,6 +182,8 @@ def warm_up() -> None:
     backstop_kernels.formation_sums(i64, np.array([1, 2], dtype=np.int64), sensed, own, np.zeros((1, 4)),
                            np.array([0, 1, 2], dtype=np.int64), np.array([0, 1, 2], dtype=np.int64), np.zeros((3, 4)),
                            np.zeros(1, dtype=np.int64), 1, 1.0, 1.0, 0.5, 3.0)
+    # one entry per sensed vehicle (guidance.controller._distinct), with its call's argument types
+    backstop_kernels.distinct_dense(sensed, np.array([1, 1], dtype=np.int64), 2)
     # the MFG braking test's scan (guidance.controller._unplanned_by_braking), with its call's argument types
     for test in (False, True):
         backstop_kernels.braking_scan(i64, np.array([1, 2], dtype=np.int64), sensed.copy(), np.zeros(2, dtype=np.bool_), 1,

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
-           "formation_sums", "braking_scan"]
+           "formation_sums", "braking_scan", "distinct_dense"]
 
 
 @njit(cache=True)
@@ -802,3 +802,47 @@ def braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, full, has_fu
             seen_v[p, 1] = states[e, 3]
             seen_k[p] = step
     return idx[:k].copy(), sh[:k].copy()
+
+
+@njit(cache=True)
+def distinct_dense(q, ids, size):
+    """guidance.controller.DefaultMFGController._distinct for small non-negative ids (every id < size), in two passes
+    without a sort: (first (u,), inv (m,), ok). first: one entry per distinct id, ids ascending (its first entry);
+    inv: each entry's rank among the distinct ids (q[first][inv] is q when ok); ok False when two entries of one id
+    carry different states (compared value by value with ==, so a NaN differs from itself, as np.array_equal)."""
+    m = ids.shape[0]
+    rep = np.full(size, -1, dtype=np.int64)
+    ok = True
+    for e in range(m):
+        i = ids[e]
+        r = rep[i]
+        if r < 0:
+            rep[i] = e
+        elif ok:
+            for c in range(q.shape[1]):
+                if not (q[e, c] == q[r, c]):
+                    ok = False
+                    break
+    if ok:      # the first entry of an id carrying a NaN is compared with nothing above: np.array_equal's NaN != NaN
+        for i in range(size):
+            r = rep[i]
+            if r >= 0:
+                for c in range(q.shape[1]):
+                    if q[r, c] != q[r, c]:
+                        ok = False
+    u = 0
+    for i in range(size):
+        if rep[i] >= 0:
+            u += 1
+    first = np.empty(u, dtype=np.int64)
+    rank = np.empty(size, dtype=np.int64)
+    u = 0
+    for i in range(size):
+        if rep[i] >= 0:
+            first[u] = rep[i]
+            rank[i] = u
+            u += 1
+    inv = np.empty(m, dtype=np.int64)
+    for e in range(m):
+        inv[e] = rank[ids[e]]
+    return first, inv, ok
