@@ -148,49 +148,87 @@ def test_the_lanes_pass_a_failed_vehicle_deflected_together():
     assert (1.0 - c / on.detour.width_m) * np.sqrt(2.0) - 1e-3 <= g_on["plan_min_separation_m"] < np.sqrt(2.0) - 0.1
 
 
-def test_a_bank_of_one_per_vehicle_deflects_exactly_as_the_bank_of_all():
-    """The detour is decided by each UAV from its own observation (the sensed states and ids, the plan from the t = 0
-    exchange): N controllers of one vehicle each (the process swarm) command bit for bit what one bank of N commands,
-    while the lanes pass a vehicle that failed into Hold (paper N = 25, vehicle 2 in the front row fails at 5 s and the
-    four rows behind fly past it)."""
+def _hold_flight(controllers, sc, plant_seed, K, fail_at_s, steps, reused=None):
+    """Fly sc with the bank(s) in ``controllers`` deciding (the first one's commands flown; every one's returned per
+    step), vehicle K failing into PX4's jerk-limited Hold at fail_at_s (the simulator's ``_step_with_hold``).
+    Returns (per step the list of the controllers' commands, the rows the first bank deflected)."""
     from scipy.spatial import cKDTree
 
     from mfg_autopilot.interface import Neighbours, Observation
+    from mfg_swarm.sim import _step_with_hold, as_f32, plant_params_for
+    from mock_vehicle.plant import SwarmPlant, braking_stop_m
+
+    preset = controllers[0][0].preset
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=plant_seed)
+    S0 = as_f32(plant.states)
+    n, ids = sc.n, np.arange(sc.n)
+    for bank, own_index, sites in controllers:
+        bank.exchange_t0(S0, ids, own_index, sites)
+    hold, hold_acc, last = None, np.zeros(2), np.zeros((n, 2))
+    out, deflected = [], set()
+    for k in range(steps):
+        obs = as_f32(plant.states)
+        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(controllers[0][0].sensor_range_m,
+                                                                            output_type="ndarray"))
+        acts = []
+        for bank, own_index, _ in controllers:
+            if own_index.size == n:
+                acts.append(bank.step(Observation(k, k * preset.dt_s, obs, None, sensed)).acc_m_s2)
+            else:
+                i = int(own_index[0])
+                m = sensed.owner == i
+                own = Neighbours(sensed.states[m], np.zeros(int(m.sum()), dtype=np.int64), sensed.ids[m])
+                acts.append(bank.step(Observation(k, k * preset.dt_s, obs[i:i + 1], None, own)).acc_m_s2)
+        first = controllers[0][0]
+        if first._detour_state is not None:
+            deflected |= set(np.flatnonzero(first._detour_state[0] & (first._detour_state[2] > 0)).tolist())
+        out.append(acts)
+        a = as_f32(acts[0])
+        if k * preset.dt_s >= fail_at_s:
+            if hold is None:
+                hold, hold_acc = braking_stop_m(obs[K:K + 1]), last[K].copy()
+            last, hold_acc = _step_with_hold(plant, a, preset.dt_s, K, hold, hold_acc, 4.0)
+        else:
+            last = plant.step(a, preset.dt_s)
+    return out, deflected
+
+
+def test_a_bank_of_one_per_vehicle_deflects_exactly_as_the_bank_of_all():
+    """The detour is decided by each UAV from its own observation (the sensed states and ids, the plan from the t = 0
+    exchange): N controllers of one vehicle each (the process swarm) command bit for bit what one bank of N commands,
+    while the lanes pass a vehicle that failed into PX4's Hold (paper N = 25, vehicle 2 in the front row fails at 5 s
+    and the four rows behind fly past it)."""
     from mfg_autopilot.presets import make_controller, preset_by_name
     from mfg_swarm.scenarios import make_scenario
-    from mfg_swarm.sim import as_f32, plant_params_for
-    from mock_vehicle.plant import SwarmPlant, braking_stop_m, hold_acc_m_s2
 
     preset = preset_by_name("default")
     sc = make_scenario("paper", 25)
     n, K = sc.n, 2
-    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset), seed=3)
-    S0 = as_f32(plant.states)
-    ids = np.arange(n)
-    bank = make_controller("mfg", preset, sc.destination_m)
-    bank.exchange_t0(S0, ids, ids, sc.destination_m)
-    singles = []
-    for i in range(n):
-        c = make_controller("mfg", preset, sc.destination_m[i:i + 1])
-        c.exchange_t0(S0, ids, np.array([i]), sc.destination_m)
-        singles.append(c)
-    hold, deflected = None, set()
-    for k in range(70):
-        obs = as_f32(plant.states)
-        sensed = Neighbours.from_pairs(obs, cKDTree(obs[:, :2]).query_pairs(bank.sensor_range_m, output_type="ndarray"))
-        a_bank = bank.step(Observation(k, k * preset.dt_s, obs, None, sensed)).acc_m_s2
-        if bank._detour_state is not None:
-            deflected |= set(np.flatnonzero(bank._detour_state[0] & (bank._detour_state[2] > 0)).tolist())
-        a_single = []
-        for i, c in enumerate(singles):
-            m = sensed.owner == i
-            own = Neighbours(sensed.states[m], np.zeros(int(m.sum()), dtype=np.int64), sensed.ids[m])
-            a_single.append(c.step(Observation(k, k * preset.dt_s, obs[i:i + 1], None, own)).acc_m_s2)
-        np.testing.assert_array_equal(a_bank, np.concatenate(a_single))
-        a = as_f32(a_bank)
-        if k * preset.dt_s >= 5.0:
-            hold = braking_stop_m(obs[K:K + 1]) if hold is None else hold
-            a[K] = hold_acc_m_s2(obs[K:K + 1], hold, plant.params.acc_limit_m_s2)[0]
-        plant.step(a, preset.dt_s)
+    bank = (make_controller("mfg", preset, sc.destination_m), np.arange(n), sc.destination_m)
+    singles = [(make_controller("mfg", preset, sc.destination_m[i:i + 1]), np.array([i]), sc.destination_m)
+               for i in range(n)]
+    out, deflected = _hold_flight([bank] + singles, sc, 3, K, 5.0, 70)
+    for acts in out:
+        np.testing.assert_array_equal(acts[0], np.concatenate(acts[1:]))
     # the flight exercised the detour: several rows flew the deflected plan
     assert len(deflected - {K}) >= 4, deflected
+
+
+def test_a_controller_reused_for_another_flight_decides_as_a_new_one():
+    """The t = 0 exchange starts a flight: a bank that flew past a failed vehicle (its detour's memory of the side, its
+    learnt value model, its tracked reference all set) and then gets another t = 0 exchange commands bit for bit what
+    a new bank commands on the second flight (paper N = 25, vehicle 2 failing into Hold in both flights)."""
+    from mfg_autopilot.presets import make_controller, preset_by_name
+    from mfg_swarm.scenarios import make_scenario
+
+    preset = preset_by_name("default")
+    sc = make_scenario("paper", 25)
+    used = make_controller("mfg", preset, sc.destination_m)
+    rows = np.arange(sc.n)
+    _, deflected = _hold_flight([(used, rows, sc.destination_m)], sc, 3, 2, 5.0, 60)
+    assert len(deflected - {2}) >= 4 and used._detour_mem is not None and np.any(used._detour_mem[0] >= 0)
+    new = make_controller("mfg", preset, sc.destination_m)
+    out, deflected = _hold_flight([(used, rows, sc.destination_m), (new, rows, sc.destination_m)], sc, 4, 2, 3.0, 60)
+    assert len(deflected - {2}) >= 4, deflected
+    for k, (a_used, a_new) in enumerate(out):
+        np.testing.assert_array_equal(a_used, a_new, err_msg=f"step {k}")

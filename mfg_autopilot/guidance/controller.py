@@ -381,6 +381,11 @@ class DefaultMFGController(_DefaultBase):
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev = None, None, None
         self._plan_v_hist, self._cutoff_hist = {}, {}
+        # a new flight: nothing of an earlier one (a controller reused for another t = 0 exchange decides as a new one;
+        # tests/test_detour.py): the detour's memory, the tracked reference, the learnt value model
+        self._detour_mem, self._detour_state, self._ref_pos, self._own_err = None, None, None, None
+        self.backstop_active = np.zeros(self.n, dtype=bool)
+        self.w_H = np.tile(lqr_value_weights(self.sigma_H, p.tracking_cost), (self.n, 1))
         rigid = (rigid_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2,
                                 translation=p.rigid_translation, cruise_spacing_m=p.cruise_spacing_m)
                  if p.rigid_plan and p.use_slots else None)
