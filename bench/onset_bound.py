@@ -6,7 +6,8 @@ Prints, for the Hold's braking (at once: ``sim --hold-jerk 0``; built up at PX4'
 reaction delay (0 to two of the default controller's 0.5 s control periods) and the gap to the failed vehicle
 in the lane (the 1.41 m lattice of paper / crossing / swap4 / circle, the 1.4 m cruise of the spread dense pad, 2 m),
 the largest smallest distance over any acceleration of norm a_max (best constant direction and best piecewise-constant
-one), against half the start spacing that issue 18 asks for.
+one), against half the start spacing that issue 18 asks for; then, per reaction delay, the smallest gap in the lane
+at which half the 1.41 m spacing can be kept (``gap_needed_m``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import argparse
 
 import numpy as np
 
-from mfg_swarm.limits import follower_best_clearance_m
+from mfg_swarm.limits import follower_best_clearance_m, gap_needed_m
 
 
 def main(argv=None) -> None:
@@ -35,6 +36,13 @@ def main(argv=None) -> None:
                                               a_max_m_s2=a.a_max, jerk_m_s3=jerk)
                 print(f"| {hold} | {gap:.2f} | {delay:.2f} | {r['constant_m']:.3f}, {r['direction_deg']:.0f} | {r['piecewise_m']:.3f} | "
                       f"{'kept' if r['piecewise_m'] >= np.sqrt(2.0) / 2 else 'not reachable'} |")
+    print()
+    print("| reaction delay (s) | gap in the lane needed for half the 1.41 m spacing, Hold at once (m) | the same, PX4's Hold (m) |")
+    print("|---|---|---|")
+    for delay in (0.5, 1.0, 1.5):
+        g = [gap_needed_m(np.sqrt(2.0) / 2, delay, v_m_s=a.v, a_brake_m_s2=a.a_brake, a_max_m_s2=a.a_max, jerk_m_s3=j)
+             for j in (None, a.jerk)]
+        print(f"| {delay:.1f} | {g[0]:.2f} | {g[1]:.2f} |")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,10 @@ constant direction and seeded restarts (L-BFGS-B on a soft minimum). A maximum o
 bound of the true optimum; the constant-direction optimum and the piecewise-free one agree to about a millimetre
 (tests/test_limits.py), which is the evidence that the bound is the optimum.
 
-Command: ``.venv/bin/python bench/onset_bound.py`` (a table over the delay and the gap).
+``gap_needed_m`` turns it round: the smallest gap in the lane at which a given reaction delay can still keep a given
+clearance (bisection on the gap over the constant-direction optimum).
+
+Command: ``.venv/bin/python bench/onset_bound.py`` (tables over the delay and the gap).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-__all__ = ["follower_best_clearance_m", "failed_along_track_m"]
+__all__ = ["follower_best_clearance_m", "failed_along_track_m", "gap_needed_m"]
 
 
 def _distances(theta: np.ndarray, v_m_s: float, gap_m: float, delay_s: float, a_brake_m_s2: float, a_max_m_s2: float,
@@ -88,3 +91,33 @@ def follower_best_clearance_m(v_m_s: float = 4.0, gap_m: float = np.sqrt(2.0), d
         res = minimize(neg_soft_min, th0, method="L-BFGS-B", options={"maxiter": 300})
         best_p = max(best_p, float(_distances(res.x, *args).min()))
     return {"constant_m": best_c, "piecewise_m": best_p, "direction_deg": float(np.degrees(th_c))}
+
+
+def _best_constant_m(gap_m: float, delay_s: float, v_m_s: float, a_brake_m_s2: float, a_max_m_s2: float,
+                     jerk_m_s3: float | None, step_s: float, horizon_s: float) -> float:
+    """The largest smallest distance over constant directions of acceleration (0.5 deg grid, one side by symmetry)."""
+    return max(float(_distances(np.array(th), v_m_s, gap_m, delay_s, a_brake_m_s2, a_max_m_s2, step_s, horizon_s,
+                                jerk_m_s3).min()) for th in np.linspace(0.0, np.pi, 361))
+
+
+def gap_needed_m(clearance_m: float, delay_s: float, v_m_s: float = 4.0, a_brake_m_s2: float = 2.0,
+                 a_max_m_s2: float = 2.0, jerk_m_s3: float | None = 4.0, step_s: float = 0.05, horizon_s: float = 8.0,
+                 gap_max_m: float = 10.0, tol_m: float = 0.005) -> float:
+    """The smallest gap in the lane (to within tol_m) behind a vehicle failing into Hold at which a follower reacting
+    delay_s late can keep clearance_m over the best constant direction of acceleration (within a millimetre of the
+    piecewise optimum: follower_best_clearance_m); inf if not even gap_max_m does. A bisection: it assumes that the
+    clearance, once kept, stays kept at larger gaps; tests/test_limits.py checks it on a grid (1.0-6.0 m, delays
+    0.5-1.5 s, both Holds, half the 1.41 m spacing), not proven."""
+    def best(gap: float) -> float:
+        return _best_constant_m(gap, delay_s, v_m_s, a_brake_m_s2, a_max_m_s2, jerk_m_s3, step_s, horizon_s)
+
+    if best(gap_max_m) < clearance_m:
+        return float("inf")
+    lo, hi = clearance_m, gap_max_m        # a gap below the clearance keeps nothing: the pair starts closer
+    while hi - lo > tol_m:
+        mid = 0.5 * (lo + hi)
+        if best(mid) >= clearance_m:
+            hi = mid
+        else:
+            lo = mid
+    return hi

@@ -52,3 +52,26 @@ def test_behind_px4s_jerk_limited_hold_one_control_period_leaves_room_for_half_t
     assert 0.8 < one["constant_m"] < 0.95 and one["piecewise_m"] >= np.sqrt(2.0) / 2
     two = follower_best_clearance_m(delay_s=1.0, restarts=1, jerk_m_s3=4.0)
     assert two["piecewise_m"] < np.sqrt(2.0) / 2
+
+
+def test_the_gap_a_reaction_delay_needs_for_half_the_lattice_spacing():
+    """gap_needed_m: behind PX4's Hold a reaction at the first sample (0.5 s) needs less than the 1.41 m lattice gap,
+    at the second (1.0 s) more than 2 m and less than 3 m (the bound table: 2.0 m keeps 0.433, 3.0 m 0.955 at 4 m/s);
+    at the found gap the clearance is kept and 5 cm less it is not; the abrupt Hold needs more; the bisection's
+    assumption holds on the grid it is used on (kept from some gap on; the best clearance rises with the gap once it
+    is 0.5 m or more; below, where no direction avoids the vehicle, it wobbles with the 0.05 s sampling)."""
+    from mfg_swarm.limits import _best_constant_m, gap_needed_m
+
+    half = np.sqrt(2.0) / 2
+    g1 = gap_needed_m(half, 0.5)
+    g2 = gap_needed_m(half, 1.0)
+    assert 1.0 < g1 < np.sqrt(2.0) and 2.0 < g2 < 3.0
+    args = (4.0, 2.0, 2.0, 4.0, 0.05, 8.0)
+    assert _best_constant_m(g2, 1.0, *args) >= half > _best_constant_m(g2 - 0.05, 1.0, *args)
+    assert gap_needed_m(half, 1.0, jerk_m_s3=None) > g2
+    for jerk in (None, 4.0):
+        for delay in (0.5, 1.0, 1.5):
+            best = [_best_constant_m(g, delay, 4.0, 2.0, 2.0, jerk, 0.05, 8.0) for g in np.arange(1.0, 6.01, 0.25)]
+            kept = np.array(best) >= half
+            assert not np.any(kept[:-1] & ~kept[1:]), (jerk, delay, best)     # kept from some gap on
+            assert np.all(np.diff(best)[np.array(best[:-1]) >= 0.5] >= -1e-9), (jerk, delay, best)
