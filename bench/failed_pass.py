@@ -46,10 +46,14 @@ def main(argv=None) -> None:
             continue
         z = np.load(r / "trajectories.npz")
         dt = float(z["dt_s"])
-        k_fail = int(np.ceil(m["fail_at_s"] / dt - 1e-9))
-        k_on = int(np.ceil((m["fail_at_s"] + a.after_s) / dt - 1e-9))
-        f, on = closest_pass(z["pos_m"], m["fail_vehicle"], k_fail), closest_pass(z["pos_m"], m["fail_vehicle"], k_on)
-        print(f"| {r.name} | {f[0]:.3f}, {f[1]}, {f[2]} | {on[0]:.3f}, {on[1]}, {on[2]} |")
+        ks, ts = np.atleast_1d(m["fail_vehicle"]), np.atleast_1d(m["fail_at_s"])
+        ts = np.broadcast_to(ts, ks.shape)
+        for K, t_fail in zip(ks, ts):           # several failed vehicles: a line each
+            k_fail = int(np.ceil(t_fail / dt - 1e-9))
+            k_on = int(np.ceil((t_fail + a.after_s) / dt - 1e-9))
+            f, on = closest_pass(z["pos_m"], int(K), k_fail), closest_pass(z["pos_m"], int(K), k_on)
+            name = r.name if ks.size == 1 else f"{r.name}, vehicle {int(K)}"
+            print(f"| {name} | {f[0]:.3f}, {f[1]}, {f[2]} | {on[0]:.3f}, {on[1]}, {on[2]} |")
 
 
 if __name__ == "__main__":

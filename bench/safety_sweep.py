@@ -82,14 +82,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", default="mfg,hjb", help="comma-separated: mfg, hjb (--range-m 100), orca, ...")
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--fail-vehicle", type=int, default=None)
-    ap.add_argument("--fail-at", type=float, default=20.0)
+    ap.add_argument("--fail-vehicle", type=int, action="append", default=None, help="repeat for several")
+    ap.add_argument("--fail-at", type=float, action="append", default=None, help="one for all (default 20) or one per vehicle")
     ap.add_argument("--hold-jerk", type=float, default=None, help="the failed vehicle's Hold jerk limit (sim --hold-jerk)")
     ap.add_argument("--gust", action="store_true")
     a = ap.parse_args(argv)
     from mfg_autopilot.presets import MODES
 
-    extra = (["--fail-vehicle", str(a.fail_vehicle), "--fail-at", str(a.fail_at)] if a.fail_vehicle is not None else []) + \
+    extra = ([x for k in a.fail_vehicle for x in ("--fail-vehicle", str(k))]
+             + [x for t in (a.fail_at or [20.0]) for x in ("--fail-at", str(t))] if a.fail_vehicle else []) + \
         (["--hold-jerk", str(a.hold_jerk)] if a.hold_jerk is not None else []) + (["--gust"] if a.gust else [])
     rows = []
     for family in a.families.split(","):

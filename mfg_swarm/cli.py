@@ -47,8 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_common(sim)
     sim.add_argument("--physics-dt-s", type=float, default=0.1, help="plant sub-step (default: 0.1 s)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
-    sim.add_argument("--fail-vehicle", type=int, default=None, metavar="K", help="fault: vehicle K stops following its controller and holds where it is")
-    sim.add_argument("--fail-at", type=float, default=0.0, metavar="T", help="fault: time in s at which --fail-vehicle fails (default: 0)")
+    sim.add_argument("--fail-vehicle", type=int, action="append", default=None, metavar="K",
+                     help="fault: vehicle K stops following its controller and holds where it is (PX4 Hold); "
+                          "repeat for several failed vehicles")
+    sim.add_argument("--fail-at", type=float, action="append", default=None, metavar="T",
+                     help="fault: time in s at which --fail-vehicle fails (default: 0); one for all, or one per "
+                          "--fail-vehicle, in the same order")
     sim.add_argument("--hold-jerk", type=float, default=4.0, metavar="J",
                      help="fault: the failed vehicle's Hold changes its acceleration at most J m/s^3 (PX4 MPC_JERK_AUTO; "
                           "default 4); 0: it brakes at the airframe's limit from the first instant (pessimistic)")
@@ -194,13 +198,20 @@ def _cmd_mission(args) -> int:
     return 0
 
 
+def _one_or_tuple(values: list | None):
+    """An appended option: None, its one value, or a tuple of its values."""
+    if not values:
+        return None
+    return values[0] if len(values) == 1 else tuple(values)
+
+
 def _cmd_sim(args) -> int:
     from .results import write_json_atomic, write_npz_atomic
     from .sim import GustParams, SimConfig, simulate
 
     cfg = SimConfig(scenario=_scenario(args), mode=args.mode, preset=preset_by_name(args.preset),
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
-                    fail_vehicle=args.fail_vehicle, fail_at_s=args.fail_at,
+                    fail_vehicle=_one_or_tuple(args.fail_vehicle), fail_at_s=_one_or_tuple(args.fail_at) or 0.0,
                     hold_jerk_m_s3=args.hold_jerk, gust=GustParams() if args.gust else None)
     traj, metrics = simulate(cfg, progress=False if args.no_progress else None)
     args.out.mkdir(parents=True, exist_ok=True)

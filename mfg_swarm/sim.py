@@ -19,7 +19,9 @@ Fault events (``SimConfig``):
   ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step, as the mock vehicle flies Hold). 0: no jerk
   limit, the PD computed at t_k and held over the step, braking at the airframe's limit from the first instant
   (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare). It still broadcasts
-  (HJB_d hears it) and is still seen by proximity sensors.
+  (HJB_d hears it) and is still seen by proximity sensors. Several failed vehicles: ``fail_vehicle`` a tuple of
+  ids, ``fail_at_s`` one time for all or a tuple of one per vehicle (``sim --fail-vehicle K1 --fail-vehicle K2
+  [--fail-at T1 --fail-at T2]``); each holds from its own failure on.
 - ``gust`` (:class:`GustParams`): an extra acceleration on every vehicle during a time
   window, beyond the modelled wind noise V_o (the controllers' model does not contain it).
   Vehicle i gets acc_m_s2 * (1 + spread * u_i) along the base direction rotated by
@@ -93,10 +95,19 @@ class SimConfig:
     range_m: float | None = None   # HJB_d radio range d
     physics_dt_s: float = 0.1
     link_float32: bool = True
-    fail_vehicle: int | None = None   # vehicle K that stops following its controller (Hold) ...
-    fail_at_s: float = 0.0            # ... from this time on
+    fail_vehicle: int | tuple[int, ...] | None = None   # vehicle(s) K that stop following their controller (Hold) ...
+    fail_at_s: float | tuple[float, ...] = 0.0          # ... from this time on (one for all, or one per vehicle)
     hold_jerk_m_s3: float = 4.0       # its Hold's jerk limit (PX4 MPC_JERK_AUTO); 0: none
     gust: GustParams | None = None
+
+    @property
+    def failures(self) -> tuple[tuple[int, float], ...]:
+        """(vehicle, time s) of every failure, in the order given."""
+        if self.fail_vehicle is None:
+            return ()
+        ks = (self.fail_vehicle,) if np.isscalar(self.fail_vehicle) else tuple(self.fail_vehicle)
+        ts = (self.fail_at_s,) * len(ks) if np.isscalar(self.fail_at_s) else tuple(self.fail_at_s)
+        return tuple((int(k), float(t)) for k, t in zip(ks, ts))
 
     @property
     def gossips(self) -> bool:
@@ -112,28 +123,39 @@ class SimConfig:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
-        if self.fail_vehicle is not None and not (0 <= self.fail_vehicle < self.scenario.n):
+        ks = () if self.fail_vehicle is None else np.atleast_1d(self.fail_vehicle)
+        ts = np.atleast_1d(np.asarray(self.fail_at_s, dtype=float))
+        if self.fail_vehicle is not None and (len(ks) == 0 or not all(float(k).is_integer() and 0 <= k < self.scenario.n
+                                                                      for k in ks)):
             raise ValueError(f"fail_vehicle must be in [0, {self.scenario.n - 1}], got {self.fail_vehicle}")
-        if not self.fail_at_s >= 0:
+        if len(set(int(k) for k in ks)) != len(ks):
+            raise ValueError(f"fail_vehicle names a vehicle twice: {self.fail_vehicle}")
+        if ts.size != 1 and ts.size != len(ks):
+            raise ValueError(f"fail_at_s: give one time for all failed vehicles or one per vehicle ({len(ks)}), got "
+                             f"{self.fail_at_s}")
+        if not np.all(ts >= 0):
             raise ValueError(f"fail_at_s must be >= 0, got {self.fail_at_s}")
         if not (np.isfinite(self.hold_jerk_m_s3) and self.hold_jerk_m_s3 >= 0):
             raise ValueError(f"hold_jerk_m_s3 must be finite and >= 0 (0: no jerk limit), got {self.hold_jerk_m_s3}")
 
 
-def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K: int, hold_pos_m: np.ndarray,
+def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold_pos_m: np.ndarray,
                     hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float) -> tuple[np.ndarray, np.ndarray]:
-    """One control step with vehicle K in Hold, every physics sub-step apart (as the mock vehicle flies it): its
-    acceleration is the Hold PD's on its state then (``hold_acc_m_s2``), jerk-limited from the previous sub-step's
-    (``jerk_limited_m_s2``); the others hold ``acc_cmd``. The sub-steps draw the same noise and make the same
-    operations as one ``plant.step(acc_cmd, dt_s)`` does for them, so they move bit for bit as without the loop.
-    Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration)."""
+    """One control step with vehicle(s) K (an index, or an index array: then hold_pos_m and hold_acc_m_s2_prev are
+    (len(K), 2)) in Hold, every physics sub-step apart (as the mock vehicle flies it): their acceleration is the Hold
+    PD's on their state then (``hold_acc_m_s2``), jerk-limited from the previous sub-step's (``jerk_limited_m_s2``);
+    the others hold ``acc_cmd``. The sub-steps draw the same noise and make the same operations as one
+    ``plant.step(acc_cmd, dt_s)`` does for them, so they move bit for bit as without the loop.
+    Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration (len(K), 2))."""
+    K = np.atleast_1d(np.asarray(K, dtype=np.int64))
     k_sub = plant.params.substeps(dt_s)
     h = dt_s / k_sub
     acc = acc_cmd.copy()
-    applied, mean_k = None, np.zeros(2)
-    a_k = np.asarray(hold_acc_m_s2_prev, dtype=float)
+    applied, mean_k = None, np.zeros((K.size, 2))
+    a_k = np.asarray(hold_acc_m_s2_prev, dtype=float).reshape(K.size, 2)
+    hold_pos_m = np.asarray(hold_pos_m, dtype=float).reshape(K.size, 2)
     for _ in range(k_sub):
-        target = hold_acc_m_s2(plant.states[K:K + 1], hold_pos_m, plant.params.acc_limit_m_s2)[0]
+        target = hold_acc_m_s2(plant.states[K], hold_pos_m, plant.params.acc_limit_m_s2)
         a_k = jerk_limited_m_s2(a_k, target, jerk_m_s3, h)
         acc[K] = a_k
         got = plant.step(acc, h)
@@ -266,7 +288,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     # MFG: each UAV's own plan particle at every control instant, for the guarantee's per-flight check (metrics
     # "guarantee"); the plan has been caught up to step k when step k begins (it advances at the end of each step)
     plan_pos = np.full((T + 1, n, 2), np.nan) if getattr(ctrl, "plan_positions_m", None) and cert else None
-    hold_pos = None
+    failures = cfg.failures
+    holds_pos, holds_acc = np.full((len(failures), 2), np.nan), np.zeros((len(failures), 2))
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     backstop_active = np.zeros((T, n), dtype=bool)
     for k in range(T):
@@ -306,16 +329,19 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             if ref is not None and ref[0] == k:
                 plan_pos[k] = ref[1]
         acc_cmd = f32(info.acc_m_s2)
-        if cfg.fail_vehicle is not None and k * dt >= cfg.fail_at_s - 1e-9:
-            K = cfg.fail_vehicle
-            if hold_pos is None:
-                hold_pos = braking_stop_m(obs[K:K + 1])     # PX4's loiter point: the braking stop ahead
-                # PX4's smoothing starts from the last setpoint's acceleration (the one it flew in offboard)
-                hold_acc = acc_log[k - 1, K].copy() if k > 0 else np.zeros(2)
+        if failures and any(k * dt >= t - 1e-9 for _, t in failures):
+            # the failed vehicles, each from its own failure on
+            for j, (Kj, tj) in enumerate(failures):
+                if k * dt >= tj - 1e-9 and not np.isfinite(holds_pos[j, 0]):
+                    holds_pos[j] = braking_stop_m(obs[Kj:Kj + 1])[0]
+                    holds_acc[j] = acc_log[k - 1, Kj] if k > 0 else 0.0
+            on = np.array([np.isfinite(holds_pos[j, 0]) for j in range(len(failures))])
+            Ks = np.array([Kj for Kj, _ in failures], dtype=np.int64)[on]
             if cfg.hold_jerk_m_s3 > 0:
-                acc_log[k], hold_acc = _step_with_hold(plant, acc_cmd, dt, K, hold_pos, hold_acc, cfg.hold_jerk_m_s3)
-            else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
-                acc_cmd[K] = hold_acc_m_s2(obs[K:K + 1], hold_pos, plant.params.acc_limit_m_s2)[0]
+                acc_log[k], holds_acc[on] = _step_with_hold(plant, acc_cmd, dt, Ks, holds_pos[on], holds_acc[on],
+                                                            cfg.hold_jerk_m_s3)
+            else:
+                acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[on], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)
         else:
             acc_log[k] = plant.step(acc_cmd, dt)
@@ -348,19 +374,22 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     if cert is not None:
         metrics["plan"] = cert            # what the t = 0 plan guarantees (guidance: rigid, scheduled groups, or none)
     metrics.update(start_spacing_m=sc.min_start_spacing_m, slot_spacing_m=sc.slot_spacing_m)
-    if cfg.fail_vehicle is not None:
-        K = cfg.fail_vehicle
-        others = np.ones(n, dtype=bool); others[K] = False
+    if failures:
+        Ks = [K for K, _ in failures]
+        others = np.ones(n, dtype=bool); others[Ks] = False
         arrived, _ = arrivals(pos, traj.dest_m, dt)
-        metrics.update(fail_vehicle=K, fail_at_s=cfg.fail_at_s, hold_jerk_m_s3=cfg.hold_jerk_m_s3,
-                       failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"] if K in p),
-                       arrived_fraction_others=float(arrived[others].mean()) if n > 1 else None)
+        one = len(failures) == 1        # one failed vehicle: its id and time as numbers, as before
+        metrics.update(fail_vehicle=Ks[0] if one else Ks, fail_at_s=failures[0][1] if one else [t for _, t in failures],
+                       hold_jerk_m_s3=cfg.hold_jerk_m_s3,
+                       failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"]
+                                                          if any(K in p for K in Ks)),
+                       arrived_fraction_others=float(arrived[others].mean()) if others.any() else None)
     if plan_pos is not None:
         # the certified plan's guarantee on this flight: UAVs within e_max of their particles keep the particles'
         # distance - 2 e_max (a UAV that failed leaves the tracking set at its failure: its pairs are the backstop's)
         tracking = np.ones((T + 1, n), dtype=bool)
-        if cfg.fail_vehicle is not None:
-            tracking[int(np.ceil(cfg.fail_at_s / dt - 1e-9)):, cfg.fail_vehicle] = False
+        for K, t_fail in failures:
+            tracking[int(np.ceil(t_fail / dt - 1e-9)):, K] = False
         metrics["guarantee"] = {"certified": cert.get("clearance_m") is not None, **separation_guarantee(pos, plan_pos, tracking, metrics["min_separation_m"])}
     if cfg.gust is not None:
         metrics["gust"] = {k: getattr(cfg.gust, k) for k in ("start_s", "duration_s", "acc_m_s2", "spread", "jitter_deg")}

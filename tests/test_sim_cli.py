@@ -54,3 +54,14 @@ def test_power_gives_the_radio_range_and_bad_input_is_a_clear_error(tmp_path, ca
     assert main(["sim", "--n", "4", "--mode", "hjb", "--steps", "2", "--out", str(tmp_path / "q")]) == 2
     assert "radio range" in capsys.readouterr().err
     assert main(["sim", "--n", "0", "--steps", "2", "--out", str(tmp_path / "r")]) == 2
+
+
+def test_repeated_fail_flags_fail_several_vehicles(tmp_path):
+    from mfg_swarm.cli import main
+    out = tmp_path / "f"
+    assert main(["sim", "--scenario", "paper", "--n", "25", "--steps", "40", "--seed", "1", "--fail-vehicle", "3",
+                 "--fail-vehicle", "12", "--fail-at", "5", "--fail-at", "8", "--out", str(out), "--no-progress"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["fail_vehicle"] == [3, 12] and m["fail_at_s"] == [5.0, 8.0]
+    assert main(["sim", "--n", "25", "--steps", "4", "--fail-vehicle", "3", "--fail-vehicle", "3",
+                 "--out", str(tmp_path / "g"), "--no-progress"]) == 2
