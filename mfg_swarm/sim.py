@@ -289,7 +289,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     # "guarantee"); the plan has been caught up to step k when step k begins (it advances at the end of each step)
     plan_pos = np.full((T + 1, n, 2), np.nan) if getattr(ctrl, "plan_positions_m", None) and cert else None
     failures = cfg.failures
-    holds_pos, holds_acc = np.full((len(failures), 2), np.nan), np.zeros((len(failures), 2))
+    fail_ids = np.array([K for K, _ in failures], dtype=np.int64)
+    holding = np.zeros(len(failures), dtype=bool)                 # failed already
+    holds_pos, holds_acc = np.zeros((len(failures), 2)), np.zeros((len(failures), 2))   # Hold point, last acceleration
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     backstop_active = np.zeros((T, n), dtype=bool)
     for k in range(T):
@@ -332,16 +334,17 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         if failures and any(k * dt >= t - 1e-9 for _, t in failures):
             # the failed vehicles, each from its own failure on
             for j, (Kj, tj) in enumerate(failures):
-                if k * dt >= tj - 1e-9 and not np.isfinite(holds_pos[j, 0]):
-                    holds_pos[j] = braking_stop_m(obs[Kj:Kj + 1])[0]
+                if k * dt >= tj - 1e-9 and not holding[j]:
+                    holding[j] = True
+                    holds_pos[j] = braking_stop_m(obs[Kj:Kj + 1])[0]    # PX4's loiter point: the braking stop ahead
+                    # PX4's smoothing starts from the last setpoint's acceleration (the one it flew in offboard)
                     holds_acc[j] = acc_log[k - 1, Kj] if k > 0 else 0.0
-            on = np.array([np.isfinite(holds_pos[j, 0]) for j in range(len(failures))])
-            Ks = np.array([Kj for Kj, _ in failures], dtype=np.int64)[on]
+            Ks = fail_ids[holding]
             if cfg.hold_jerk_m_s3 > 0:
-                acc_log[k], holds_acc[on] = _step_with_hold(plant, acc_cmd, dt, Ks, holds_pos[on], holds_acc[on],
-                                                            cfg.hold_jerk_m_s3)
-            else:
-                acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[on], plant.params.acc_limit_m_s2)
+                acc_log[k], holds_acc[holding] = _step_with_hold(plant, acc_cmd, dt, Ks, holds_pos[holding],
+                                                                 holds_acc[holding], cfg.hold_jerk_m_s3)
+            else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
+                acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[holding], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)
         else:
             acc_log[k] = plant.step(acc_cmd, dt)
