@@ -809,30 +809,20 @@ def distinct_dense(q, ids, size):
     """guidance.controller.DefaultMFGController._distinct for small non-negative ids (every id < size), in two passes
     without a sort: (first (u,), inv (m,), ok). first: one entry per distinct id, ids ascending (its first entry);
     inv: each entry's rank among the distinct ids (q[first][inv] is q when ok); ok False when two entries of one id
-    carry different states (compared value by value with ==, so a NaN differs from itself, as np.array_equal)."""
+    carry different states (compared value by value with ==, so a NaN differs from itself, as np.array_equal); then
+    first and inv are empty."""
     m = ids.shape[0]
     rep = np.full(size, -1, dtype=np.int64)
-    ok = True
+    u = 0
     for e in range(m):
         i = ids[e]
         r = rep[i]
+        for c in range(q.shape[1]):
+            # an id's first entry is checked for NaN (np.array_equal: NaN != NaN), the others against it
+            if (r < 0 and q[e, c] != q[e, c]) or (r >= 0 and not (q[e, c] == q[r, c])):
+                return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), False
         if r < 0:
             rep[i] = e
-        elif ok:
-            for c in range(q.shape[1]):
-                if not (q[e, c] == q[r, c]):
-                    ok = False
-                    break
-    if ok:      # the first entry of an id carrying a NaN is compared with nothing above: np.array_equal's NaN != NaN
-        for i in range(size):
-            r = rep[i]
-            if r >= 0:
-                for c in range(q.shape[1]):
-                    if q[r, c] != q[r, c]:
-                        ok = False
-    u = 0
-    for i in range(size):
-        if rep[i] >= 0:
             u += 1
     first = np.empty(u, dtype=np.int64)
     rank = np.empty(size, dtype=np.int64)
@@ -845,4 +835,4 @@ def distinct_dense(q, ids, size):
     inv = np.empty(m, dtype=np.int64)
     for e in range(m):
         inv[e] = rank[ids[e]]
-    return first, inv, ok
+    return first, inv, True
