@@ -52,7 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "repeat for several failed vehicles")
     sim.add_argument("--fail-at", type=float, action="append", default=None, metavar="T",
                      help="fault: time in s at which --fail-vehicle fails (default: 0); one for all, or one per "
-                          "--fail-vehicle, in the same order")
+                          "--fail-vehicle, in the same order; between two control instants it fails at the next "
+                          "physics sub-step (a real failure does not wait for the next sample)")
     sim.add_argument("--hold-jerk", type=float, default=4.0, metavar="J",
                      help="fault: the failed vehicle's Hold changes its acceleration at most J m/s^3 (PX4 MPC_JERK_AUTO; "
                           "default 4); 0: it brakes at the airframe's limit from the first instant (pessimistic)")

@@ -11,14 +11,17 @@ One loop per control step t_k = k dt:
 4. the plant (eq. 9, each vehicle's own noise stream from (seed, id)) advances dt.
 
 Fault events (``SimConfig``):
-- ``fail_vehicle`` K, ``fail_at_s`` T: from the first control instant t_k >= T, vehicle K
-  stops following its controller and holds (PX4 Hold: ``mock_vehicle.plant.hold_acc_m_s2`` towards
-  the braking stop ahead of its state at t_k, ``braking_stop_m``, as PX4's navigator sets it). Its acceleration
+- ``fail_vehicle`` K, ``fail_at_s`` T: from the first physics sub-step instant >= T (a control instant
+  t_k = T when T is one; else inside the control step: a real failure does not wait for the next sample),
+  vehicle K stops following its controller and holds (PX4 Hold: ``mock_vehicle.plant.hold_acc_m_s2`` towards
+  the braking stop ahead of its state at that instant, ``braking_stop_m``, as PX4's navigator sets it).
+  Until then in that step it flies the command it was given at t_k. Its acceleration
   changes from the one it flew last (before the failure: its last command, within the airframe's limit) at most
   ``hold_jerk_m_s3`` (PX4's MPC_JERK_AUTO, 4 m/s^3:
   ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step, as the mock vehicle flies Hold). 0: no jerk
   limit, the PD computed at t_k and held over the step, braking at the airframe's limit from the first instant
-  (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare). It still broadcasts
+  (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare; failure times on the
+  control grid only). It still broadcasts
   (HJB_d hears it) and is still seen by proximity sensors. Several failed vehicles: ``fail_vehicle`` a tuple of
   ids, ``fail_at_s`` one time for all or a tuple of one per vehicle (``sim --fail-vehicle K1 --fail-vehicle K2
   [--fail-at T1 --fail-at T2]``); each holds from its own failure on.
@@ -133,38 +136,62 @@ class SimConfig:
         if ts.size != 1 and ts.size != len(ks):
             raise ValueError(f"fail_at_s: give one time for all failed vehicles or one per vehicle ({len(ks)}), got "
                              f"{self.fail_at_s}")
-        if not np.all(ts >= 0):
-            raise ValueError(f"fail_at_s must be >= 0, got {self.fail_at_s}")
+        if not np.all(np.isfinite(ts) & (ts >= 0)):
+            raise ValueError(f"fail_at_s must be finite and >= 0, got {self.fail_at_s}")
         if not (np.isfinite(self.hold_jerk_m_s3) and self.hold_jerk_m_s3 >= 0):
             raise ValueError(f"hold_jerk_m_s3 must be finite and >= 0 (0: no jerk limit), got {self.hold_jerk_m_s3}")
+        if self.fail_vehicle is not None and self.hold_jerk_m_s3 == 0:
+            dt = self.preset.dt_s
+            off = ts[np.abs(ts / dt - np.round(ts / dt)) > 1e-9]
+            if off.size:
+                raise ValueError(f"fail_at_s {off.tolist()} is not on the control grid (dt = {dt} s): the abrupt Hold "
+                                 f"(hold_jerk_m_s3 = 0) is the PD held over a control step; failures inside a step need "
+                                 f"PX4's jerk-limited Hold (hold_jerk_m_s3 > 0)")
 
 
 def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold_pos_m: np.ndarray,
-                    hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float) -> tuple[np.ndarray, np.ndarray]:
+                    hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float,
+                    first_sub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One control step with vehicle(s) K (an index, or an index array: then hold_pos_m and hold_acc_m_s2_prev are
     (len(K), 2)) in Hold, every physics sub-step apart (as the mock vehicle flies it): their acceleration is the Hold
     PD's on their state then (``hold_acc_m_s2``), jerk-limited from the previous sub-step's (``jerk_limited_m_s2``);
     the others hold ``acc_cmd``. The sub-steps draw the same noise and make the same operations as one
     ``plant.step(acc_cmd, dt_s)`` does for them, so they move bit for bit as without the loop.
-    Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration (len(K), 2))."""
+
+    ``first_sub`` (len(K),), ints: the sub-step at which each vehicle enters Hold during this step (0, the default:
+    from the step's start). Before it the vehicle flies its command ``acc_cmd``; at it, its Hold point becomes the
+    braking stop ahead of its state then (``braking_stop_m``, replacing its row of hold_pos_m) and its smoothing
+    starts from the acceleration it flew (PX4's ``FlightTaskAuto::activate``).
+    Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration (len(K), 2); the Hold
+    points (len(K), 2))."""
     K = np.atleast_1d(np.asarray(K, dtype=np.int64))
     k_sub = plant.params.substeps(dt_s)
     h = dt_s / k_sub
     acc = acc_cmd.copy()
     applied, mean_k = None, np.zeros((K.size, 2))
-    a_k = np.asarray(hold_acc_m_s2_prev, dtype=float).reshape(K.size, 2)
-    hold_pos_m = np.asarray(hold_pos_m, dtype=float).reshape(K.size, 2)
-    for _ in range(k_sub):
-        target = hold_acc_m_s2(plant.states[K], hold_pos_m, plant.params.acc_limit_m_s2)
-        a_k = jerk_limited_m_s2(a_k, target, jerk_m_s3, h)
-        acc[K] = a_k
+    a_k = np.asarray(hold_acc_m_s2_prev, dtype=float).reshape(K.size, 2).copy()
+    hold_pos_m = np.asarray(hold_pos_m, dtype=float).reshape(K.size, 2).copy()
+    first = np.zeros(K.size, dtype=np.int64) if first_sub is None else np.asarray(first_sub, dtype=np.int64)
+    for i in range(k_sub):
+        starting = first == i
+        if i > 0 and starting.any():          # a failure inside the step: Hold from this sub-step's state
+            hold_pos_m[starting] = braking_stop_m(plant.states[K[starting]])
+        on = first <= i
+        if on.all():
+            target = hold_acc_m_s2(plant.states[K], hold_pos_m, plant.params.acc_limit_m_s2)
+            a_k = jerk_limited_m_s2(a_k, target, jerk_m_s3, h)
+            acc[K] = a_k
+        elif on.any():
+            target = hold_acc_m_s2(plant.states[K[on]], hold_pos_m[on], plant.params.acc_limit_m_s2)
+            a_k[on] = jerk_limited_m_s2(a_k[on], target, jerk_m_s3, h)
+            acc[K[on]] = a_k[on]
         got = plant.step(acc, h)
-        a_k = got[K].copy()            # what the airframe applied (within its limit)
+        a_k = got[K].copy()            # what the airframe applied (within its limit): also the last flown command
         mean_k += a_k
         applied = got if applied is None else applied
     applied = applied.copy()
     applied[K] = mean_k / k_sub
-    return applied, a_k
+    return applied, a_k, hold_pos_m
 
 
 def plant_params_for(preset: Preset, physics_dt_s: float = 0.1) -> PlantParams:
@@ -293,6 +320,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     holding = np.zeros(len(failures), dtype=bool)                 # failed already
     holds_pos, holds_acc = np.zeros((len(failures), 2)), np.zeros((len(failures), 2))   # Hold point, last acceleration
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
+    h_sub = dt / plant.params.substeps(dt)        # a failure inside a control step begins at a physics sub-step
     backstop_active = np.zeros((T, n), dtype=bool)
     for k in range(T):
         obs = f32(plant.states)
@@ -331,18 +359,22 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             if ref is not None and ref[0] == k:
                 plan_pos[k] = ref[1]
         acc_cmd = f32(info.acc_m_s2)
-        if failures and any(k * dt >= t - 1e-9 for _, t in failures):
-            # the failed vehicles, each from its own failure on
+        if failures and any((k + 1) * dt > t + 1e-9 for _, t in failures):
+            # the failed vehicles, each from its own failure on: at this control instant, or at a physics sub-step
+            # inside this step (first_sub), flying its command until then
+            first_sub = np.zeros(len(failures), dtype=np.int64)
             for j, (Kj, tj) in enumerate(failures):
-                if k * dt >= tj - 1e-9 and not holding[j]:
+                if (k + 1) * dt > tj + 1e-9 and not holding[j]:
                     holding[j] = True
+                    first_sub[j] = max(0, int(np.ceil((tj - k * dt) / h_sub - 1e-9)))
                     holds_pos[j] = braking_stop_m(obs[Kj:Kj + 1])[0]    # PX4's loiter point: the braking stop ahead
                     # PX4's smoothing starts from the last setpoint's acceleration (the one it flew in offboard)
                     holds_acc[j] = acc_log[k - 1, Kj] if k > 0 else 0.0
             Ks = fail_ids[holding]
             if cfg.hold_jerk_m_s3 > 0:
-                acc_log[k], holds_acc[holding] = _step_with_hold(plant, acc_cmd, dt, Ks, holds_pos[holding],
-                                                                 holds_acc[holding], cfg.hold_jerk_m_s3)
+                acc_log[k], holds_acc[holding], holds_pos[holding] = _step_with_hold(
+                    plant, acc_cmd, dt, Ks, holds_pos[holding], holds_acc[holding], cfg.hold_jerk_m_s3,
+                    first_sub[holding])
             else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
                 acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[holding], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)

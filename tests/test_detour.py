@@ -187,7 +187,7 @@ def _hold_flight(controllers, sc, plant_seed, K, fail_at_s, steps, reused=None):
         if k * preset.dt_s >= fail_at_s:
             if hold is None:
                 hold, hold_acc = braking_stop_m(obs[K:K + 1]), last[K].copy()
-            last, hold_acc = _step_with_hold(plant, a, preset.dt_s, K, hold, hold_acc, 4.0)
+            last, hold_acc, _ = _step_with_hold(plant, a, preset.dt_s, K, hold, hold_acc, 4.0)
         else:
             last = plant.step(a, preset.dt_s)
     return out, deflected

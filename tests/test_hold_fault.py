@@ -51,7 +51,7 @@ def test_the_other_vehicles_move_bit_for_bit_as_in_one_plant_step():
     K = 7
     hold = braking_stop_m(a.states[K:K + 1])
     # when one steps with vehicle K in Hold (sub-step by sub-step) and the other with one plant.step
-    applied, last = sim._step_with_hold(a, acc, 0.5, K, hold, np.zeros(2), 4.0)
+    applied, last, _ = sim._step_with_hold(a, acc, 0.5, K, hold, np.zeros(2), 4.0)
     b.step(acc, 0.5)
     # then every other vehicle is where one plant.step puts it, bit for bit, and K is not
     others = np.arange(30) != K
@@ -132,3 +132,61 @@ def test_two_vehicles_failing_at_their_own_times_each_hold_and_the_others_arrive
         # the stream (measured ~0.2 against 3.5-4.2 m/s), and by 27.5 s 50 has stopped too
         speed = np.linalg.norm(traj.vel_m_s, axis=2)
         assert speed[45, 10] < 0.5 and speed[45, 50] > 3.0 and speed[55, 50] < 0.5, (scenario, speed[[45, 55]][:, [10, 50]])
+
+
+def test_a_failure_inside_a_control_step_begins_at_its_physics_sub_step():
+    # given two identical plants of 30 vehicles and one command, vehicle K failing 0.2 s into a 0.5 s step
+    sc = make_scenario("paper", 30)
+    params = sim.plant_params_for(preset_by_name("default"))
+    a, b = SwarmPlant(sc.initial_pos_m, params, seed=4), SwarmPlant(sc.initial_pos_m, params, seed=4)
+    acc = np.random.default_rng(1).uniform(-1.5, 1.5, (30, 2))
+    K = 7
+    # when one steps with K entering Hold at sub-step 2 (its Hold point unknown until then: a dummy is replaced) ...
+    applied, last, hold = sim._step_with_hold(a, acc, 0.5, K, np.full((1, 2), np.nan), np.zeros(2), 4.0,
+                                              first_sub=np.array([2]))
+    # ... and the other flies two plain 0.1 s sub-steps, then Hold from there over the remaining 0.3 s
+    cmd = b.step(acc, 0.1)
+    b.step(acc, 0.1)
+    hold_b = braking_stop_m(b.states[K:K + 1])
+    _, last_b, _ = sim._step_with_hold(b, acc, 0.3, K, hold_b, cmd[K], 4.0)
+    # then both end alike (to rounding: 0.3 / 3 is not 0.1 to the last bit): K flew its command until its failure,
+    # its Hold point is the braking stop ahead of its state at the failure, its smoothing starts from that command
+    np.testing.assert_allclose(a.states, b.states, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(hold, hold_b, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(last, last_b, rtol=0, atol=1e-9)
+    assert np.linalg.norm(hold - braking_stop_m(a.states[K:K + 1])) > 0.1      # not where it is at the step's end
+    # and the logged mean is two sub-steps of the command and three of the ramp away from it
+    ramp = np.linalg.norm(applied[K] - saturate_norm(acc, params.acc_limit_m_s2)[K])
+    assert 0.0 < ramp <= (0.4 + 0.8 + 1.2) / 5 + 1e-12
+
+
+def test_a_vehicle_failing_between_two_samples_flies_its_command_until_then():
+    """paper N = 25, vehicle 7 failing at 10.2 s (between the control instants 10.0 and 10.5): up to 10.0 s the flight
+    is the one without a failure, bit for bit; from 10.2 s vehicle 7 holds, so at 10.5 s it is off the flight that has
+    no failure but also off the one that fails at 10.0 s (it flew its command 0.2 s longer); the other vehicles see it
+    only at 10.5 s and move as without the failure until then."""
+    kw = dict(scenario=make_scenario("paper", 25), mode="mfg", preset=preset_by_name("default"), seed=1, steps=30)
+    free, _ = sim.simulate(sim.SimConfig(**kw), progress=False)
+    mid, m = sim.simulate(sim.SimConfig(fail_vehicle=7, fail_at_s=10.2, **kw), progress=False)
+    grid, _ = sim.simulate(sim.SimConfig(fail_vehicle=7, fail_at_s=10.0, **kw), progress=False)
+    assert m["fail_at_s"] == 10.2
+    np.testing.assert_array_equal(mid.pos_m[:21], free.pos_m[:21])
+    others = np.arange(25) != 7
+    np.testing.assert_array_equal(mid.pos_m[21, others], free.pos_m[21, others])
+    for other in (free, grid):
+        assert np.linalg.norm(mid.pos_m[21, 7] - other.pos_m[21, 7]) > 1e-3
+    # it brakes: slower than without the failure, faster than when it failed 0.2 s earlier
+    speed = [np.linalg.norm(t.vel_m_s[21, 7]) for t in (free, mid, grid)]
+    assert speed[0] > speed[1] > speed[2], speed
+    # and it stops near the braking stop ahead of where it was when it failed
+    assert np.linalg.norm(mid.vel_m_s[-1, 7]) < 0.3
+
+
+def test_a_failure_off_the_control_grid_needs_the_jerk_limited_hold():
+    sc, p = make_scenario("paper", 9), preset_by_name("default")
+    with pytest.raises(ValueError, match="not on the control grid"):
+        sim.SimConfig(scenario=sc, mode="mfg", preset=p, fail_vehicle=1, fail_at_s=10.2, hold_jerk_m_s3=0.0)
+    sim.SimConfig(scenario=sc, mode="mfg", preset=p, fail_vehicle=1, fail_at_s=10.5, hold_jerk_m_s3=0.0)   # on it
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="finite and >= 0"):
+            sim.SimConfig(scenario=sc, mode="mfg", preset=p, fail_vehicle=1, fail_at_s=bad)
