@@ -7,7 +7,10 @@ reaction delay (0 to two of the default controller's 0.5 s control periods) and 
 in the lane (the 1.41 m lattice of paper / crossing / swap4 / circle, the 1.4 m cruise of the spread dense pad, 2 m),
 the largest smallest distance over any acceleration of norm a_max (best constant direction and best piecewise-constant
 one), against half the start spacing that issue 18 asks for; then, per reaction delay, the smallest gap in the lane
-at which half the 1.41 m spacing can be kept (``gap_needed_m``).
+at which half the 1.41 m spacing can be kept (``gap_needed_m``); then, behind PX4's Hold in the 1.41 m lattice, the
+best clearance per reaction delay up to 1.2 s, the longest delay that keeps half the spacing and the longest that
+keeps the 0.1 m collision distance (``longest_delay_s``), and what that leaves a controller sampling every 0.5 s: it
+reacts up to its detection's age + 0.5 s after a failure at an arbitrary instant.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import argparse
 
 import numpy as np
 
-from mfg_swarm.limits import follower_best_clearance_m, gap_needed_m
+from mfg_swarm.limits import _best_constant_m, follower_best_clearance_m, gap_needed_m, longest_delay_s
 
 
 def main(argv=None) -> None:
@@ -43,6 +46,21 @@ def main(argv=None) -> None:
         g = [gap_needed_m(np.sqrt(2.0) / 2, delay, v_m_s=a.v, a_brake_m_s2=a.a_brake, a_max_m_s2=a.a_max, jerk_m_s3=j)
              for j in (None, a.jerk)]
         print(f"| {delay:.1f} | {g[0]:.2f} | {g[1]:.2f} |")
+    print()
+    gap, period = np.sqrt(2.0), 0.5
+    print(f"| reaction delay (s) | best clearance behind PX4's Hold, 1.41 m gap (m) |")
+    print("|---|---|")
+    for delay in np.arange(0.5, 1.201, 0.1):
+        c = _best_constant_m(gap, round(delay, 2), a.v, a.a_brake, a.a_max, a.jerk, 0.05, 8.0)
+        print(f"| {delay:.1f} | {c:.3f} |")
+    print()
+    for name, clearance in (("half the 1.41 m spacing", gap / 2), ("the 0.1 m collision distance", 0.1)):
+        d = longest_delay_s(clearance, gap, v_m_s=a.v, a_brake_m_s2=a.a_brake, a_max_m_s2=a.a_max, jerk_m_s3=a.jerk)
+        tau = d - period
+        lost = 0.5 * a.jerk * tau * tau if tau <= a.a_brake / a.jerk else (
+            0.5 * a.a_brake ** 2 / a.jerk + a.a_brake * (tau - a.a_brake / a.jerk))
+        print(f"- {name}: reaction within {d:.2f} s of the failure; sampling every {period} s, the Hold must be flagged "
+              f"once it has lasted {tau:.2f} s (it has lost {lost:.3f} m/s of its speed then)")
 
 
 if __name__ == "__main__":

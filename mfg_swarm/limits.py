@@ -16,7 +16,14 @@ bound of the true optimum; the constant-direction optimum and the piecewise-free
 (tests/test_limits.py), which is the evidence that the bound is the optimum.
 
 ``gap_needed_m`` turns it round: the smallest gap in the lane at which a given reaction delay can still keep a given
-clearance (bisection on the gap over the constant-direction optimum).
+clearance (bisection on the gap over the constant-direction optimum). ``longest_delay_s`` turns it the other way: the
+longest reaction delay at which a given gap still keeps a given clearance.
+
+**The delay is the detection's age plus the sampling period.** A controller that sees its neighbours every T (the
+control period) and flags a Hold once it has lasted tau_det (its test's threshold: the velocity lost, j tau^2 / 2 on the
+ramp, or the braking averaged over the last period) reacts, for a failure at an arbitrary instant, up to tau_det + T
+after it: the sample before came just too early. A failure on the control grid (the simulator's ``--fail-at`` at a
+multiple of dt) is the most favourable phase, not the worst.
 
 Command: ``.venv/bin/python bench/onset_bound.py`` (tables over the delay and the gap).
 """
@@ -26,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-__all__ = ["follower_best_clearance_m", "failed_along_track_m", "gap_needed_m"]
+__all__ = ["follower_best_clearance_m", "failed_along_track_m", "gap_needed_m", "longest_delay_s"]
 
 
 def _distances(theta: np.ndarray, v_m_s: float, gap_m: float, delay_s: float, a_brake_m_s2: float, a_max_m_s2: float,
@@ -121,3 +128,20 @@ def gap_needed_m(clearance_m: float, delay_s: float, v_m_s: float = 4.0, a_brake
         else:
             lo = mid
     return hi
+
+
+def longest_delay_s(clearance_m: float, gap_m: float = np.sqrt(2.0), v_m_s: float = 4.0, a_brake_m_s2: float = 2.0,
+                    a_max_m_s2: float = 2.0, jerk_m_s3: float | None = 4.0, step_s: float = 0.05,
+                    horizon_s: float = 8.0, delay_max_s: float = 3.0) -> float:
+    """The longest reaction delay (a multiple of step_s) at which the UAV gap_m behind a vehicle failing into Hold can
+    keep clearance_m over the best constant direction of acceleration; -1 if not even an immediate reaction does. Scans
+    the delays upwards and stops at the first one that fails (the clearance falls with the delay:
+    tests/test_limits.py checks it on the grid it is used on)."""
+    n_max = int(round(delay_max_s / step_s))
+    last = -1.0
+    for i in range(n_max + 1):
+        d = i * step_s
+        if _best_constant_m(gap_m, d, v_m_s, a_brake_m_s2, a_max_m_s2, jerk_m_s3, step_s, horizon_s) < clearance_m:
+            break
+        last = d
+    return last

@@ -1,6 +1,7 @@
 """The physical limit behind a vehicle that fails into Hold (mfg_swarm/limits.py)."""
 
 import numpy as np
+import pytest
 
 from mfg_swarm.limits import follower_best_clearance_m
 
@@ -75,3 +76,22 @@ def test_the_gap_a_reaction_delay_needs_for_half_the_lattice_spacing():
             kept = np.array(best) >= half
             assert not np.any(kept[:-1] & ~kept[1:]), (jerk, delay, best)     # kept from some gap on
             assert np.all(np.diff(best)[np.array(best[:-1]) >= 0.5] >= -1e-9), (jerk, delay, best)
+
+
+def test_the_longest_reaction_delay_behind_px4s_hold_in_the_lattice():
+    """longest_delay_s: in the 1.41 m lattice behind PX4's Hold, half the spacing needs a reaction within ~0.55 s of the
+    failure, and the 0.1 m collision distance within ~1.1 s; so a controller that samples every 0.5 s and reacts at
+    the sample at which the Hold has lasted 0.6 s or more stays collision-free whatever the failure's phase, and one
+    that may need a Hold 0.7 s old does not (1.2 s: 0.08 m at best). The clearance falls with the delay on the grid
+    the scan is used on (its assumption)."""
+    from mfg_swarm.limits import _best_constant_m, longest_delay_s
+
+    half = np.sqrt(2.0) / 2
+    assert longest_delay_s(half) == pytest.approx(0.55)
+    assert longest_delay_s(0.1) == pytest.approx(1.1)
+    assert longest_delay_s(0.1, gap_m=2.0) > 1.1                  # more room, more time
+    assert longest_delay_s(0.1, jerk_m_s3=None) < 1.1             # the abrupt Hold leaves less
+    assert longest_delay_s(2.0) == -1.0                           # more than the gap: not even at once
+    best = [_best_constant_m(np.sqrt(2.0), d, 4.0, 2.0, 2.0, 4.0, 0.05, 8.0) for d in np.arange(0.0, 1.51, 0.05)]
+    assert np.all(np.diff(best) <= 1e-9), best
+    assert best[23] < 0.1 < best[22]                               # 1.1 s keeps 0.1 m, 1.15 s does not
