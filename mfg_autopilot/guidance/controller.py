@@ -357,6 +357,7 @@ class DefaultMFGController(_DefaultBase):
         self._seen_v: np.ndarray | None = None
         self._seen_k: np.ndarray | None = None
         self._own_v_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' own velocities then)
+        self._own_a_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' commands then): act()
         self._plan_v_hist: dict[int, np.ndarray] = {}
         self._ref_pos: tuple[int, np.ndarray] | None = None     # (plan step, each row's reference position): act()
         self._detour_mem: tuple[np.ndarray, np.ndarray] | None = None   # (lost vehicle id, side) per row: _detour
@@ -379,7 +380,7 @@ class DefaultMFGController(_DefaultBase):
                 self._id_table[ids[::-1]] = np.arange(ids.size - 1, -1, -1, dtype=np.int64)
         self._plan_tree, self._flow_tree, self._side_mem = None, None, None
         self._prepared, self._pending = None, None
-        self._seen_v, self._seen_k, self._own_v_prev = None, None, None
+        self._seen_v, self._seen_k, self._own_v_prev, self._own_a_prev = None, None, None, None
         self._plan_v_hist, self._cutoff_hist = {}, {}
         # a new flight: nothing of an earlier one (a controller reused for another t = 0 exchange decides as a new one;
         # tests/test_detour.py): the detour's memory, the tracked reference, the learnt value model
@@ -916,14 +917,26 @@ class DefaultMFGController(_DefaultBase):
         do_test = a_plan is not None and step >= 1
         full = self._cutoff_hist.get(step - 1)
         has_full = full is not None and full.shape[0] == N
-        has_own = own_prev is not None and own_prev[0] == step - 1
+        has_own = own_prev is not None and own_prev[0] == step - 1 and do_test
+        own_ref = np.zeros((0, 2))
+        if has_own:
+            # the common mode the braking must exceed: the own row's acceleration the plan and the own command do not
+            # explain - its own velocity change less what eq. 9 makes of the command it sent (the wind: a head wind
+            # or a gust brakes the observer as it brakes its neighbours) - or, with "deviation", less only the own
+            # particle's (then the observer's own commanded braking - following a neighbour that brakes, through
+            # the formation's mean - hides that neighbour's Hold: docs/default_controller.md, fifteenth session)
+            v, v0 = np.asarray(own[:, 2:4], dtype=float), own_prev[1]
+            if bp.plan_mismatch_brake_common == "disturbance" and self._own_a_prev is not None \
+                    and self._own_a_prev[0] == step - 1:
+                c = self.preset.cost
+                own_ref = (v - v0) / self.preset.dt_s - (self._own_a_prev[1] - c.c0_per_s * (0.5 * (v + v0) - c.v_o[None, :]))
+            else:
+                own_ref = (v - v0) / self.preset.dt_s - a_plan[self.own_index]
         idx, shifted = braking_scan(_kernel_arg(sn.owner, np.int64), _kernel_arg(part, np.int64), _kernel_arg(sn.states, np.float64),
                                     _kernel_arg(unplanned, np.bool_), self.n, self._seen_v, self._seen_k,
                                     _kernel_arg(full if has_full else np.zeros((0, 4)), np.float64), has_full,
                                     _kernel_arg(a_plan if do_test else np.zeros((0, 2)), np.float64), do_test,
-                                    _kernel_arg(own, np.float64),
-                                    _kernel_arg(own_prev[1] if has_own else np.zeros((0, 2)), np.float64), has_own,
-                                    _kernel_arg(self.own_index, np.int64), int(step), float(self.preset.dt_s),
+                                    _kernel_arg(own_ref, np.float64), has_own, int(step), float(self.preset.dt_s),
                                     float(bp.plan_mismatch_brake_m_s2))
         if idx.size:
             out[idx] = self._beyond_plan(shifted, bp.plan_mismatch_m, part[idx])
@@ -1083,6 +1096,7 @@ class DefaultMFGController(_DefaultBase):
         if tp.feedback and tp.relative_priority:
             a_nom = self._relative_priority(a_plan, a_nom, obs)
         a = self._backstop(own, a_nom, obs)
+        self._own_a_prev = (obs.step, np.array(a, dtype=float))     # the braking test's common mode, next step
         self._pending = fpk_args or ()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
 

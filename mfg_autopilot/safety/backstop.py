@@ -188,4 +188,4 @@ def warm_up() -> None:
     for test in (False, True):
         backstop_kernels.braking_scan(i64, np.array([1, 2], dtype=np.int64), sensed.copy(), np.zeros(2, dtype=np.bool_), 1,
                                       np.zeros((3, 2)), np.zeros(3, dtype=np.int64), np.zeros((3, 4)), test, np.zeros((3, 2)), test,
-                                      own.copy(), np.zeros((1, 2)), test, np.zeros(1, dtype=np.int64), 1, 0.5, 1.75)
+                                      np.zeros((1, 2)), test, 1, 0.5, 1.75)

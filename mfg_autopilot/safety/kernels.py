@@ -744,8 +744,8 @@ def formation_sums(owner, ids, states, own_states, own_err, sid, spart, plan_sta
 
 
 @njit(cache=True)
-def braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, full, has_full, a_plan, do_test, own, own_prev,
-                 has_own_prev, own_index, step, dt, brake_min):
+def braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, full, has_full, a_plan, do_test, own_ref,
+                 has_own_ref, step, dt, brake_min):
     """The per-entry part of the MFG braking test (guidance.controller.DefaultMFGController._unplanned_by_braking and
     braking_off_plan) in one pass, with the same floating-point operations in the same order.
 
@@ -753,7 +753,8 @@ def braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, full, has_fu
     unplanned (m,)): a candidate is an entry on the plan whose row senses no unplanned vehicle yet, with a previous
     velocity sample - seen_v[part] if seen_k[part] == step - 1, else full[part, 2:4] when has_full. Its deviation
     acceleration a_dev = (v - v_prev) / dt - a_plan[part] brakes along v_prev by more than brake_min (and, when
-    has_own_prev, by more than brake_min relative to the observing row's own a_dev, from own and own_prev). Returns
+    has_own_ref, by more than brake_min relative to the observing row's own_ref (n, 2): the common mode, see
+    DefaultMFGController._unplanned_by_braking). Returns
     (entries (k,), their states shifted by one more period of a_dev (k, 4)); then records every planned entry's
     velocity as seen at ``step`` (seen_v, seen_k updated in place). do_test False: only the recording."""
     m = owner.shape[0]
@@ -782,11 +783,10 @@ def braking_scan(owner, part, states, unplanned, n, seen_v, seen_k, full, has_fu
             den = max(speed, 1e-9)
             if not ((ad0 * vp0 + ad1 * vp1) / den < -brake_min and speed > brake_min * dt):
                 continue
-            if has_own_prev:
+            if has_own_ref:
                 o = owner[e]
-                oi = own_index[o]
-                r0 = ad0 - ((own[o, 2] - own_prev[o, 0]) / dt - a_plan[oi, 0])
-                r1 = ad1 - ((own[o, 3] - own_prev[o, 1]) / dt - a_plan[oi, 1])
+                r0 = ad0 - own_ref[o, 0]
+                r1 = ad1 - own_ref[o, 1]
                 if not ((r0 * vp0 + r1 * vp1) / den < -brake_min):
                     continue
             idx[k] = e
