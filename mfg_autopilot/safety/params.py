@@ -40,7 +40,8 @@ class BackstopParams:
     # explain: the wind) or, as before the fifteenth session, its own "deviation" from its particle (which hid a Hold
     # the observer followed by command). 0.9: PX4's Hold brakes >= 1.0 m/s^2 on average over any control period that
     # ends >= 0.5 s after it began (its ramp: 4 m/s^3 to 2 m/s^2), so a Hold is flagged at the first sample at which
-    # it is 0.5-1.0 s old, whatever its phase: a reaction within 1.0 s, behind which the UAV 1.41 m back can keep
+    # it is 0.5-1.0 s old, whatever its phase (noise permitting: the margin is 0.1 m/s^2 for a failure just after a
+    # sample, more for the others): a reaction within 1.0 s, behind which the UAV 1.41 m back can keep
     # 0.194 m (mfg_swarm.limits; 1.75 before: a Hold 0.6 s old went unflagged, 1.1-1.2 s, 0.08-0.12 m)
     plan_mismatch_brake_common: str = "disturbance"
     own_slot_claim: bool = True     # MFG: a sensed vehicle within min(plan_mismatch_m, spacing / 2) of the own particle is unplanned ...
