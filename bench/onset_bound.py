@@ -48,7 +48,7 @@ def main(argv=None) -> None:
         print(f"| {delay:.1f} | {g[0]:.2f} | {g[1]:.2f} |")
     print()
     gap, period = np.sqrt(2.0), 0.5
-    print(f"| reaction delay (s) | best clearance behind PX4's Hold, 1.41 m gap (m) |")
+    print("| reaction delay (s) | best clearance behind PX4's Hold, 1.41 m gap (m) |")
     print("|---|---|")
     for delay in np.arange(0.5, 1.201, 0.1):
         c = _best_constant_m(gap, round(delay, 2), a.v, a.a_brake, a.a_max, a.jerk, 0.05, 8.0)

@@ -177,11 +177,7 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
         if i > 0 and starting.any():          # a failure inside the step: Hold from this sub-step's state
             hold_pos_m[starting] = braking_stop_m(plant.states[K[starting]])
         on = first <= i
-        if on.all():
-            target = hold_acc_m_s2(plant.states[K], hold_pos_m, plant.params.acc_limit_m_s2)
-            a_k = jerk_limited_m_s2(a_k, target, jerk_m_s3, h)
-            acc[K] = a_k
-        elif on.any():
+        if on.any():
             target = hold_acc_m_s2(plant.states[K[on]], hold_pos_m[on], plant.params.acc_limit_m_s2)
             a_k[on] = jerk_limited_m_s2(a_k[on], target, jerk_m_s3, h)
             acc[K[on]] = a_k[on]

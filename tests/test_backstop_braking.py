@@ -80,12 +80,12 @@ def test_a_gust_like_push_a_swerve_and_a_recovery_are_not_flagged():
     assert not braking_off_plan(q, v_prev, np.array([[-2.0, 0.0]]), DT, BP.plan_mismatch_brake_m_s2, _beyond).any()
 
 
-def _stream_controller() -> DefaultMFGController:
+def _stream_controller(preset=DEFAULT) -> DefaultMFGController:
     """A bank of the 9 vehicles of a 3 x 3 block (0.5 m apart) whose plan takes them 200 m along x."""
     pos = np.array([[0.5 * i, 0.5 * j] for i in range(3) for j in range(3)], dtype=float)
     s0 = np.concatenate([pos, np.zeros_like(pos)], axis=1)
     sites = pos + np.array([200.0, 0.0])
-    c = DefaultMFGController(DEFAULT, sites)
+    c = DefaultMFGController(preset, sites)
     c.exchange_t0(s0, np.arange(9), np.arange(9), sites)
     return c
 
@@ -182,11 +182,7 @@ def test_a_hold_is_flagged_at_its_first_full_period_though_the_observer_brakes_w
     fifteenth session) the observer's own braking hid it."""
     from dataclasses import replace
 
-    preset = replace(DEFAULT, backstop=replace(BP, plan_mismatch_brake_common=common))
-    pos = np.array([[0.5 * i, 0.5 * j] for i in range(3) for j in range(3)], dtype=float)
-    sites = pos + np.array([200.0, 0.0])
-    c = DefaultMFGController(preset, sites)
-    c.exchange_t0(np.concatenate([pos, np.zeros_like(pos)], axis=1), np.arange(9), np.arange(9), sites)
+    c = _stream_controller(replace(DEFAULT, backstop=replace(BP, plan_mismatch_brake_common=common)))
     k = _fly_on_plan_to_cruise(c)
     x = c.plan.states.copy()
     a_plan_k = c.plan.action().copy()        # the command that flies the plan over [k, k + 1] (with the drag)

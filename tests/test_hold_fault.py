@@ -42,12 +42,17 @@ def test_jerk_limit_property(prev, target, jerk, dt):
         assert step == pytest.approx(jerk * dt, rel=1e-9)
 
 
-def test_the_other_vehicles_move_bit_for_bit_as_in_one_plant_step():
-    # given two identical plants of 30 vehicles and one command
+def _twin_plants(seed: int, acc_seed: int):
+    """Two identical plants of 30 `paper` vehicles, their parameters and one random command (30, 2)."""
     sc = make_scenario("paper", 30)
     params = sim.plant_params_for(preset_by_name("default"))
-    a, b = SwarmPlant(sc.initial_pos_m, params, seed=5), SwarmPlant(sc.initial_pos_m, params, seed=5)
-    acc = np.random.default_rng(0).uniform(-1.5, 1.5, (30, 2))
+    a, b = SwarmPlant(sc.initial_pos_m, params, seed=seed), SwarmPlant(sc.initial_pos_m, params, seed=seed)
+    return a, b, params, np.random.default_rng(acc_seed).uniform(-1.5, 1.5, (30, 2))
+
+
+def test_the_other_vehicles_move_bit_for_bit_as_in_one_plant_step():
+    # given two identical plants of 30 vehicles and one command
+    a, b, params, acc = _twin_plants(5, 0)
     K = 7
     hold = braking_stop_m(a.states[K:K + 1])
     # when one steps with vehicle K in Hold (sub-step by sub-step) and the other with one plant.step
@@ -136,10 +141,7 @@ def test_two_vehicles_failing_at_their_own_times_each_hold_and_the_others_arrive
 
 def test_a_failure_inside_a_control_step_begins_at_its_physics_sub_step():
     # given two identical plants of 30 vehicles and one command, vehicle K failing 0.2 s into a 0.5 s step
-    sc = make_scenario("paper", 30)
-    params = sim.plant_params_for(preset_by_name("default"))
-    a, b = SwarmPlant(sc.initial_pos_m, params, seed=4), SwarmPlant(sc.initial_pos_m, params, seed=4)
-    acc = np.random.default_rng(1).uniform(-1.5, 1.5, (30, 2))
+    a, b, params, acc = _twin_plants(4, 1)
     K = 7
     # when one steps with K entering Hold at sub-step 2 (its Hold point unknown until then: a dummy is replaced) ...
     applied, last, hold = sim._step_with_hold(a, acc, 0.5, K, np.full((1, 2), np.nan), np.zeros(2), 4.0,
