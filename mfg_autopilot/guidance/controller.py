@@ -358,7 +358,7 @@ class DefaultMFGController(_DefaultBase):
         self._seen_k: np.ndarray | None = None
         self._own_v_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' own velocities then)
         self._own_a_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' commands then): act()
-        self._plan_v_hist: dict[int, np.ndarray] = {}
+        self._plan_s_hist: dict[int, np.ndarray] = {}
         self._ref_pos: tuple[int, np.ndarray] | None = None     # (plan step, each row's reference position): act()
         self._detour_mem: tuple[np.ndarray, np.ndarray] | None = None   # (lost vehicle id, side) per row: _detour
         self._cutoff_hist: dict[int, np.ndarray] = {}
@@ -381,7 +381,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_tree, self._flow_tree, self._side_mem = None, None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev, self._own_a_prev = None, None, None, None
-        self._plan_v_hist, self._cutoff_hist = {}, {}
+        self._plan_s_hist, self._cutoff_hist = {}, {}
         # a new flight: nothing of an earlier one (a controller reused for another t = 0 exchange decides as a new one;
         # tests/test_detour.py): the detour's memory, the tracked reference, the learnt value model
         self._detour_mem, self._detour_state, self._ref_pos, self._own_err = None, None, None, None
@@ -865,13 +865,13 @@ class DefaultMFGController(_DefaultBase):
         the plan is not at ``step`` or its velocities at step - 1 were not recorded (records the current ones)."""
         if self.plan.k != step:
             return None
-        v = self._plan_v_hist.get(step)
-        if v is None:
-            v = self.plan.states[:, 2:4].copy()
-            self._plan_v_hist = {k: x for k, x in self._plan_v_hist.items() if k == step - 1}
-            self._plan_v_hist[step] = v
-        prev = self._plan_v_hist.get(step - 1)
-        return None if prev is None else (v - prev) / self.preset.dt_s
+        s = self._plan_s_hist.get(step)
+        if s is None:
+            s = self.plan.states.copy()
+            self._plan_s_hist = {k: x for k, x in self._plan_s_hist.items() if k == step - 1}
+            self._plan_s_hist[step] = s
+        prev = self._plan_s_hist.get(step - 1)
+        return None if prev is None else (s[:, 2:4] - prev[:, 2:4]) / self.preset.dt_s
 
     def _particles_of(self, ids: np.ndarray) -> np.ndarray:
         """(m,) the plan particle of each vehicle id (the t = 0 exchange's order), -1 for an id it did not hold. By a
@@ -938,8 +938,42 @@ class DefaultMFGController(_DefaultBase):
                                     _kernel_arg(a_plan if do_test else np.zeros((0, 2)), np.float64), do_test,
                                     _kernel_arg(own_ref, np.float64), has_own, int(step), float(self.preset.dt_s),
                                     float(bp.plan_mismatch_brake_m_s2))
+        if idx.size and bp.plan_mismatch_brake_expected:
+            keep = self._brakes_beyond_tracking(sn, idx, shifted, part[idx], a_plan, step, own_ref if has_own else None)
+            idx, shifted = idx[keep], shifted[keep]
         if idx.size:
             out[idx] = self._beyond_plan(shifted, bp.plan_mismatch_m, part[idx])
+        return out
+
+    def _brakes_beyond_tracking(self, sn: Neighbours, idx: np.ndarray, shifted: np.ndarray, part: np.ndarray,
+                                a_plan: np.ndarray, step: int, own_ref: np.ndarray | None) -> np.ndarray:
+        """(k,) bool: of the braking entries idx (braking_scan's; shifted their states plus one more period of the
+        braking), those whose braking exceeds plan_mismatch_brake_m_s2 also beyond what their own tracking explains:
+        the command eq. 8 makes of their deviation from their particle at the previous sample (estimated from the
+        sensed state and the measured braking; the observing row's value model w_H stands in for theirs), and beyond it
+        less own_ref too ((n, 2) per row, the common mode of _unplanned_by_braking; None: not known this step). A UAV
+        that was faster than its particle brakes back by command (eq. 8 overshoots at the 0.5 s period); a vehicle in
+        Hold brakes whatever its deviation was. docs/default_controller.md, "The braking test subtracts the
+        neighbour's own tracking"."""
+        p, tp, dt = self.preset, self.preset.tracking, self.preset.dt_s
+        prev = self._plan_s_hist.get(step - 1)
+        if prev is None:
+            return np.ones(idx.size, dtype=bool)
+        q = sn.states[idx]
+        meas = (shifted[:, 2:4] - q[:, 2:4]) / dt + a_plan[part]         # the measured velocity change / dt
+        v_prev = q[:, 2:4] - dt * meas
+        p_prev = q[:, 0:2] - 0.5 * dt * (q[:, 2:4] + v_prev)
+        e = np.concatenate([p_prev, v_prev], axis=1) - prev[part]
+        e = np.concatenate([cap_norm(e[:, 0:2], tp.e_pos_max_m), cap_norm(e[:, 2:4], tp.e_vel_max_m_s)], axis=1)
+        a_exp = a_plan[part] + optimal_action(self.sigma_H.grad_psi(e, self.w_H[sn.owner[idx]]), p.cost.c3)
+        r = meas - a_exp
+        speed = np.maximum(np.linalg.norm(v_prev, axis=1), 1e-9)
+        th = p.backstop.plan_mismatch_brake_m_s2
+        out = (r[:, 0] * v_prev[:, 0] + r[:, 1] * v_prev[:, 1]) / speed < -th
+        if own_ref is not None:
+            # and beyond the common mode, as the scan's test (a gust brakes the observer as it brakes the neighbour)
+            r = r - own_ref[sn.owner[idx]]
+            out &= (r[:, 0] * v_prev[:, 0] + r[:, 1] * v_prev[:, 1]) / speed < -th
         return out
 
     def _formation_error(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
