@@ -128,3 +128,30 @@ def test_readme_table_formats_the_sweep_and_a_later_file_wins(tmp_path):
     rows = buf.getvalue().splitlines()
     assert rows[2] == ("| `swap4` | 100 | 0 / 0.012 m / 100 % (63 s) / 700 / 99 / 2 s | not run | "
                        "3 / 0.012 m / 100 % (63 s) / 700 / 0 / 2 s |")
+
+
+def test_tracking_jitter_counts_only_cruise_samples_and_measures_the_along_track_spread():
+    """bench/tracking_jitter.py's statistic: a UAV cruising along x at 4 m/s whose speed alternates between 4.1 and
+    3.9 m/s from one 0.5 s period to the next accelerates +-0.4 m/s^2 along its track (rms 0.4); a sideways wobble
+    does not count, nor does a UAV that is not in cruise (1 m/s)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("tracking_jitter", Path(__file__).parents[1] / "bench" / "tracking_jitter.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    T, dt = 41, 0.5
+    vel = np.zeros((T + 1, 2, 2))
+    vel[:, 0, 0] = 4.0 + 0.1 * (-1.0) ** np.arange(T + 1)        # speed 4.1 / 3.9: +-0.2 m/s per period
+    vel[:, 0, 1] = 0.02 * (-1.0) ** np.arange(T + 1)             # sideways wobble
+    vel[:, 1, 0] = 1.0                                           # slow: not in cruise
+    acc = np.zeros((T, 2, 2))
+    s = mod.along_track_stats(vel, acc, dt)
+    assert s["samples"] == T - 2                                  # k = 2 .. T - 1, the first UAV only
+    assert abs(s["rms"] - 0.4) < 0.01
+    assert s["below_0.9"] == 0.0 and s["below_0.6"] == 0.0
+    # with one period of 1.0-1.8 m/s^2 of braking (a Hold's first full period) in the middle, that sample is below both
+    vel[20:, 0, 0] -= 0.7
+    vel[21:, 0, 0] += 0.7                                         # and back (the cruise gate drops the sample after)
+    s = mod.along_track_stats(vel, acc, dt)
+    assert s["below_0.9"] > 0.0
