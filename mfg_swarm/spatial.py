@@ -196,10 +196,11 @@ def _compile_pairs():
     from numba import njit
 
     @njit(cache=True, nogil=True)
-    def reach_pairs(xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, base, cap2, n_all, us, vs, h, out_keys):
+    def reach_pairs(xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, base, cap2, n_all, us, vs, h, wd, out_keys):
         """The keys i * n + j (i < j) of the pairs, written to out_keys while they fit; returns their number
         (the caller runs it again with room for all if they did not fit). A pair is owned by its member
-        with the larger (extra, index), so the other member lies within base + 2 extra of it."""
+        with the larger (extra, index), so the other member lies within base + 2 extra of it. wd (n,) bool
+        or empty: the wide points, whose pairs skip the closest-approach test."""
         n = xs.shape[0]
         total = 0
         for k in range(n):
@@ -231,7 +232,7 @@ def _compile_pairs():
                     else:
                         lim = (base + em) + ek
                     if math.sqrt(d2) <= lim:
-                        if h >= 0.0:
+                        if h >= 0.0 and not (wd.shape[0] > 0 and (wd[k] or wd[m])):
                             # the closest-approach test: min over 0 <= tau <= h of |d + tau u| <= base
                             du = us[m] - us[k]
                             dv = vs[m] - vs[k]
@@ -276,7 +277,7 @@ swarm has far more than 16 pairs per vehicle, and a kernel run that overflows it
 
 
 def _reach_keys(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h: float,
-                vel: np.ndarray | None) -> np.ndarray:
+                vel: np.ndarray | None, wide: np.ndarray | None = None) -> np.ndarray:
     """The keys i * n + j (i < j), in no particular order, of the pairs of pairs_within_reach (also within cap_m,
     scipy's test), by the compiled grid kernel."""
     n = pts.shape[0]
@@ -290,7 +291,9 @@ def _reach_keys(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h
     us = vs = np.zeros(0)
     if vel is not None:
         us, vs = np.ascontiguousarray(vel[order, 0], dtype=np.float64), np.ascontiguousarray(vel[order, 1], dtype=np.float64)
-    args = (xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, float(base), cap2, n, us, vs, float(h) if vel is not None else -1.0)
+    wd = np.zeros(0, dtype=np.bool_) if wide is None else np.ascontiguousarray(wide[order], dtype=np.bool_)
+    args = (xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, float(base), cap2, n, us, vs, float(h) if vel is not None else -1.0,
+            wd)
     keys = np.empty(max(16 * n + 1024, _KEYS_ROOM[0] + _KEYS_ROOM[0] // 4), dtype=np.int64)
     total = kern(*args, keys)
     if total > keys.size:
@@ -301,10 +304,10 @@ def _reach_keys(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h
 
 
 def _pairs_within_reach_grid(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h: float,
-                             vel: np.ndarray | None) -> np.ndarray:
+                             vel: np.ndarray | None, wide: np.ndarray | None = None) -> np.ndarray:
     """The pairs of pairs_within_reach (also within cap_m, scipy's test), sorted, by the compiled grid kernel."""
     n = pts.shape[0]
-    keys = _reach_keys(pts, base, extra, cap_m, h, vel)
+    keys = _reach_keys(pts, base, extra, cap_m, h, vel, wide)
     keys.sort()
     return np.stack([keys // n, keys % n], axis=1)
 
@@ -349,6 +352,28 @@ def _compile_rows():
     return rows_of_keys
 
 
+def _parse_reach(reach, n: int, vel: np.ndarray | None):
+    """A controller's reach as (base, extra (n,), horizon or None, wide (n,) bool or None, vel or None): a scalar
+    base, or (base, extra[, horizon_s[, wide]]) (pairs_within_reach's docstring)."""
+    if np.isscalar(reach):
+        base, extra, h, wide = reach, None, None, None
+    else:
+        base, extra, h, wide = (tuple(reach) + (None, None))[:4]
+    if h is not None and vel is None:
+        raise ValueError("a reach with a relative-velocity horizon needs the velocities (vel)")
+    if wide is not None and h is None:
+        raise ValueError("wide rows are exempt from the closest-approach test: a reach with them needs its horizon")
+    vel = None if h is None else np.asarray(vel, dtype=np.float64).reshape(-1, 2)
+    extra = np.zeros(n) if extra is None else np.asarray(extra, dtype=float)
+    if wide is not None:
+        wide = np.asarray(wide, dtype=bool)
+        if wide.shape != (n,):
+            raise ValueError(f"the reach's wide rows must be ({n},), got {wide.shape}")
+        if not wide.any():
+            wide = None
+    return float(base), extra, h, wide, vel
+
+
 def rows_within_reach(pts: np.ndarray, reach, cap_m: float, vel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(owner (m,), other (m,)) = ``mock_vehicle.proximity.sensed_rows(pairs_within_reach(None, pts, reach, cap_m,
     clip=True, vel=vel))``, bit for bit, without sorting: the grid kernel's pairs, in the order it finds them, go
@@ -357,13 +382,9 @@ def rows_within_reach(pts: np.ndarray, reach, cap_m: float, vel: np.ndarray | No
     n = pts.shape[0]
     if n < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    base, extra, h = (reach, None, None) if np.isscalar(reach) else (tuple(reach) + (None,))[:3]
-    if h is not None and vel is None:
-        raise ValueError("a reach with a relative-velocity horizon needs the velocities (vel)")
-    vel = None if h is None else np.asarray(vel, dtype=np.float64).reshape(-1, 2)
-    extra = np.zeros(n) if extra is None else np.asarray(extra, dtype=float)
-    keys = _reach_keys(np.ascontiguousarray(pts, dtype=np.float64), float(base), extra, float(cap_m),
-                       -1.0 if h is None else float(h), vel)
+    base, extra, h, wide, vel = _parse_reach(reach, n, vel)
+    keys = _reach_keys(np.ascontiguousarray(pts, dtype=np.float64), base, extra, float(cap_m),
+                       -1.0 if h is None else float(h), vel, wide)
     return _compile_rows()(keys, n)
 
 
@@ -377,6 +398,8 @@ def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float, clip
     horizon, min over 0 <= tau <= horizon_s of |d + tau u| (d = r_j - r_i, u = v_j - v_i), to be <= base
     (vel (N, 2): the velocities of the states the reach was declared for; it implies
     |d| <= base + horizon_s |u|, so extra_k >= horizon_s |v_k - c| for any c keeps the scan complete).
+    A fourth element, wide (N,) bool, exempts the pairs of the wide vehicles from that closest-approach test
+    (a controller's rows that need every vehicle within base + extra_i + extra_j: give them extra >= cap_m).
 
     From ``min_grid_n`` points on (or with clip), a compiled grid kernel: each pair is found from
     its member with the larger extra, within base + 2 extra of it, so one fast vehicle costs its
@@ -384,18 +407,14 @@ def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float, clip
     percentile of extra), plus, for the few vehicles with extra > q, all pairs within
     base + extra + max(extra) by a second tree query. Both end with the same exact per-pair test
     (tests/test_scaling.py, tests/test_spatial.py)."""
-    base, extra, h = (reach, None, None) if np.isscalar(reach) else (tuple(reach) + (None,))[:3]
-    if h is not None and vel is None:
-        raise ValueError("a reach with a relative-velocity horizon needs the velocities (vel)")
-    vel = None if h is None else np.asarray(vel, dtype=np.float64).reshape(-1, 2)
     n = pts.shape[0]
-    extra = np.zeros(n) if extra is None else np.asarray(extra, dtype=float)
+    base, extra, h, wide, vel = _parse_reach(reach, n, vel)
     emax = float(extra.max()) if n else 0.0
     if not clip and not base + 2.0 * emax < cap_m:
         return None
     if n >= 2 and (n >= min_grid_n or clip):
         return _pairs_within_reach_grid(np.ascontiguousarray(pts, dtype=np.float64), float(base), extra, float(cap_m),
-                                        -1.0 if h is None else float(h), vel)
+                                        -1.0 if h is None else float(h), vel, wide)
     q = float(np.quantile(extra, 0.9)) if n else 0.0
     keys = [None]
     p0 = tree.query_pairs(base + 2.0 * q + 1e-9, output_type="ndarray").astype(np.int64)
@@ -415,5 +434,8 @@ def pairs_within_reach(tree: cKDTree, pts: np.ndarray, reach, cap_m: float, clip
         dd, uu = pts[pairs[:, 1]] - pts[pairs[:, 0]], vel[pairs[:, 1]] - vel[pairs[:, 0]]
         u2 = np.einsum("pd,pd->p", uu, uu)
         tau = np.where(u2 > 0, np.clip(-np.einsum("pd,pd->p", dd, uu) / np.where(u2 > 0, u2, 1.0), 0.0, h), 0.0)
-        keep &= np.linalg.norm(dd + tau[:, None] * uu, axis=1) <= base
+        near = np.linalg.norm(dd + tau[:, None] * uu, axis=1) <= base
+        if wide is not None:
+            near |= wide[pairs[:, 0]] | wide[pairs[:, 1]]
+        keep &= near
     return pairs[keep]

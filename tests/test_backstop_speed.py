@@ -97,6 +97,11 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
         da_new = backstop.backstop_acc(own, states, owner, bp)
         da_ref = ref.backstop_acc(own, states, owner, bp)
         assert np.array_equal(da_new, da_ref)
+        # a subset by select= (no copy) is the subset copied, bit for bit (a per-entry trigger: one per entry of all)
+        sel = rng.random(states.shape[0]) < 0.6
+        bp_sel = bp if np.isscalar(bp.trigger_m) else dataclasses.replace(bp, trigger_m=bp.trigger_m[sel], target_m=bp.target_m[sel])
+        assert np.array_equal(backstop.backstop_acc(own, states, owner, bp, select=sel),
+                              ref.backstop_acc(own, states[sel], owner[sel], bp_sel))
         a_new, act_new = backstop.apply_backstop(a_nom, da_new, 2.0)
         a_ref, act_ref = ref.apply_backstop(a_nom, da_ref, 2.0)
         assert np.array_equal(a_new, a_ref) and np.array_equal(act_new, act_ref)

@@ -90,6 +90,23 @@ def test_collisions_equal_the_all_pairs_check(seed, n):
     assert [tuple(p) for p in col["pairs"]] == ref[3]
 
 
+def test_collisions_of_crossing_streams_equal_the_all_pairs_check():
+    # given four streams flying through each other at 4 m/s (swap4's shape: the displacements differ by 2 m per step,
+    # and the candidates are the pairs whose segments come within the smallest distance so far)
+    rng = np.random.default_rng(7)
+    n = 400
+    head = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])[np.arange(n) % 4]
+    p0 = rng.uniform(-15.0, 15.0, (n, 2)) - 20.0 * head
+    steps = 2.0 * head[None] + rng.normal(0.0, 0.05, (20, n, 2))
+    pos = np.concatenate([p0[None], p0[None] + np.cumsum(steps, axis=0)], axis=0)
+    # when checked with the pruning and against every pair
+    col, ref = collisions(pos), _brute_collisions(pos)
+    # then the same pairs, pair-steps and smallest distance (and some pairs collide)
+    assert (col["collision_pairs"], col["collision_pair_steps"]) == ref[:2] and ref[0] > 0
+    assert col["min_pair_distance_m"] == ref[2]
+    assert [tuple(p) for p in col["pairs"]] == ref[3]
+
+
 @pytest.mark.parametrize("n_side", [8, 47])
 def test_min_distance_exact_without_collisions(n_side):
     # given a jittered lattice flying together, no pair ever within the radius (the min-distance-only path;

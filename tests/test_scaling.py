@@ -121,6 +121,7 @@ def test_pairs_within_reach_are_exactly_the_brute_force_ones(seed):
 @pytest.mark.parametrize("mode,scenario,n,extra", [("mfg", "dense", 49, {"fail_vehicle": 24, "fail_at_s": 10.0}), ("mfg", "paper", 25, {"fail_vehicle": 7, "fail_at_s": 20.0}),
                                                    ("mfg", "crossing", 50, {"fail_vehicle": 27, "fail_at_s": 15.0}),
                                                    ("mfg", "swap4", 144, {"gust": sim.GustParams()}),
+                                                   ("mfg", "swap4", 100, {}),
                                                    ("mfg", "paper", 400, {"fail_vehicle": 0, "fail_at_s": 20.0}),
                                                    ("hjb", "crossing", 36, {"fail_vehicle": 3, "fail_at_s": 5.0})])
 def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch, mode, scenario, n, extra):
@@ -221,11 +222,13 @@ def test_mfg_sensed_cutoff_widens_only_the_rows_within_the_sensor_range_of_a_veh
             x[bad, 2:4] = 0.0
         else:
             x[bad, 0:2] = x[398, 0:2] + 0.3 * (x[bad, 0:2] - x[398, 0:2]) / np.linalg.norm(x[bad, 0:2] - x[398, 0:2])
-        base, extra = ctrl.sensed_cutoff_m(x)
+        base, extra, horizon_s, wide_rows = ctrl.sensed_cutoff_m(x)
         # then the rows within the sensor range of the hovering vehicle (or the blown row alone) get the whole range,
-        # and every other row the reach it has while everyone flies the plan
+        # exempt from the closest-approach test, and every other row the reach it has while everyone flies the plan
         d = np.linalg.norm(x[:, 0:2] - x[bad, 0:2], axis=1)
         wide = d <= bp.sensor_range_m if change == "hover" else np.arange(400) == bad
+        np.testing.assert_array_equal(wide_rows, wide)
+        assert not np.any(on_plan[3]) and horizon_s == on_plan[2] == max(bp.horizon_s, bp.gap_push_horizon_s)
         assert base == on_plan[0]
         assert np.all(extra[wide] >= bp.sensor_range_m)
         np.testing.assert_array_equal(extra[~wide], on_plan[1][~wide])
@@ -239,6 +242,6 @@ def test_mfg_sensed_cutoff_widens_only_the_rows_within_the_sensor_range_of_a_veh
     x[5, 0:2] = x[6, 0:2] + np.array([0.1, 0.0])
     b = replace(DEFAULT.backstop, plan_mismatch_brake_m_s2=0.0)
     ctrl.preset = replace(DEFAULT, backstop=b)
-    base, extra = ctrl.sensed_cutoff_m(x)
+    base, extra, _, wide_rows = ctrl.sensed_cutoff_m(x)
     # then row 6 (its slot claimed) and row 5 (1.4 m off its particle: it may yield) get the whole range, no other
-    assert set(np.flatnonzero(extra >= bp.sensor_range_m)) == {5, 6}
+    assert set(np.flatnonzero(extra >= bp.sensor_range_m)) == {5, 6} == set(np.flatnonzero(wide_rows))

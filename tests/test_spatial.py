@@ -74,14 +74,17 @@ def test_count_within_rejects_bad_input():
     assert count_within(np.zeros((0, 2)), 1.0).shape == (0,)
 
 
-def _brute_reach_pairs(pts, base, extra, cap=np.inf, vel=None, h=None):
+def _brute_reach_pairs(pts, base, extra, cap=np.inf, vel=None, h=None, wide=None):
     d = np.linalg.norm(pts[:, None] - pts[None, :], axis=2)
     ok = d <= base + extra[:, None] + extra[None, :]
     if vel is not None:
         dd, uu = pts[None, :] - pts[:, None], vel[None, :] - vel[:, None]
         u2 = np.sum(uu * uu, axis=2)
         tau = np.clip(-np.sum(dd * uu, axis=2) / np.where(u2 > 0, u2, 1.0), 0.0, h) * (u2 > 0)
-        ok &= np.linalg.norm(dd + tau[..., None] * uu, axis=2) <= base
+        near = np.linalg.norm(dd + tau[..., None] * uu, axis=2) <= base
+        if wide is not None:
+            near |= wide[:, None] | wide[None, :]
+        ok &= near
     if np.isfinite(cap):
         dx = pts[:, None] - pts[None, :]
         ok &= (dx[..., 0] * dx[..., 0] + dx[..., 1] * dx[..., 1]) <= cap * cap
@@ -117,6 +120,51 @@ def test_grid_pairs_within_reach_equal_the_tree_ones_and_the_brute_force_ones(se
     assert pairs_within_reach(tree, pts, (1.0, extra), 5.0) is None
     with pytest.raises(ValueError, match="velocities"):
         pairs_within_reach(tree, pts, (1.0, extra, 2.0), 100.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_wide_vehicles_skip_the_closest_approach_test(seed):
+    # given streams crossing at 8 m/s closing speed (a stream mate keeps u ~ 0, an oncoming vehicle does not) and a few
+    # wide vehicles (a controller's rows near a vehicle off the plan: they need every vehicle within their reach)
+    from mfg_swarm.spatial import rows_within_reach
+    from mock_vehicle.proximity import sensed_rows
+
+    rng = np.random.default_rng(seed)
+    n = 800
+    pts = rng.uniform(0.0, 40.0, (n, 2))
+    vel = np.where((np.arange(n) % 2 == 0)[:, None], [4.0, 0.0], [-4.0, 0.0]) + rng.normal(0.0, 0.05, (n, 2))
+    extra = 2.0 * np.linalg.norm(vel - np.median(vel, axis=0), axis=1)
+    wide = np.zeros(n, dtype=bool)
+    wide[rng.choice(n, 25, replace=False)] = True
+    extra[wide] = 10.0
+    tree = cKDTree(pts)
+    # when listed with the horizon and the wide vehicles, by the grid kernel, the k-d tree and as sensed rows
+    reach = (1.5, extra, 2.0, wide)
+    grid = pairs_within_reach(tree, pts, reach, 100.0, vel=vel, min_grid_n=0)
+    kd = pairs_within_reach(tree, pts, reach, 100.0, vel=vel, min_grid_n=10**9)
+    ref = _brute_reach_pairs(pts, 1.5, extra, vel=vel, h=2.0, wide=wide)
+    # then each is the brute force: a wide vehicle's pairs by the distance test alone, the others' also by the
+    # closest approach
+    np.testing.assert_array_equal(grid, ref)
+    np.testing.assert_array_equal(kd, ref)
+    rows = rows_within_reach(pts, reach, 10.0, vel=vel)
+    ref_rows = sensed_rows(pairs_within_reach(None, pts, reach, 10.0, clip=True, vel=vel))
+    for a, b in zip(rows, ref_rows):
+        np.testing.assert_array_equal(a, b)
+    # (not trivial: the exemption keeps pairs the test removes, and the test removes pairs of the others)
+    no_wide = _brute_reach_pairs(pts, 1.5, extra, vel=vel, h=2.0)
+    dist_only = _brute_reach_pairs(pts, 1.5, extra)
+    assert len(no_wide) < len(ref) < len(dist_only)
+    # a wide vehicle senses every vehicle within its reach and the sensor range (10 m)
+    w = int(np.flatnonzero(wide)[0])
+    d_w = np.linalg.norm(pts - pts[w], axis=1)
+    near_w = np.flatnonzero((d_w <= 1.5 + extra[w] + extra) & (d_w <= 10.0))
+    assert set(rows[1][rows[0] == w]) == set(near_w) - {w}
+    # and a malformed wide mask or one without the horizon is refused
+    with pytest.raises(ValueError, match="wide"):
+        pairs_within_reach(tree, pts, (1.5, extra, 2.0, wide[:-1]), 100.0, vel=vel)
+    with pytest.raises(ValueError, match="horizon"):
+        pairs_within_reach(tree, pts, (1.5, extra, None, wide), 100.0, vel=vel)
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -352,13 +352,17 @@ def _cap_row(ax, ay, limit):
 
 
 @njit(cache=True)
-def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m, target_m, share, tau_min_s, a_max):
+def half_plane_acc(own, sensed_states, owner, n, horizon_s, u_noise2, trigger_m, target_m, share, tau_min_s, a_max,
+                   select, has_select):
     """backstop.backstop_acc (its docstring): the correction delta_a (n, 2). u_noise2 = u_noise_m_s ** 2 as Python computes it;
-    trigger_m, target_m per sensed entry (m,)."""
+    trigger_m, target_m per sensed entry (m,). With has_select, only the entries p with select[p] (m,) count: the same
+    numbers as passing sensed_states[select] (the sums run in the same order), without the copy."""
     out = np.zeros((n, 2))
     m = sensed_states.shape[0]
     any_act = False
     for p in range(m):
+        if has_select and not select[p]:
+            continue
         o = owner[p]
         dx = sensed_states[p, 0] - own[o, 0]
         dy = sensed_states[p, 1] - own[o, 1]
