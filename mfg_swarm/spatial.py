@@ -196,11 +196,12 @@ def _compile_pairs():
     from numba import njit
 
     @njit(cache=True, nogil=True)
-    def reach_pairs(xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, base, cap2, n_all, us, vs, h, wd, out_keys):
+    def reach_pairs(xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, base, cap2, rmax, n_all, us, vs, h, wd, out_keys):
         """The keys i * n + j (i < j) of the pairs, written to out_keys while they fit; returns their number
         (the caller runs it again with room for all if they did not fit). A pair is owned by its member
         with the larger (extra, index), so the other member lies within base + 2 extra of it. wd (n,) bool
-        or empty: the wide points, whose pairs skip the closest-approach test."""
+        or empty: the wide points, whose pairs skip the closest-approach test. rmax >= sqrt(cap2): no point
+        farther counts, so the scan stops there (a reach spanning the sensor range scans no farther)."""
         n = xs.shape[0]
         total = 0
         for k in range(n):
@@ -208,7 +209,7 @@ def _compile_pairs():
             y = ys[k]
             ek = ex[k]
             ik = idx[k]
-            rk = base + 2.0 * ek + 1e-9 * (1.0 + base + 2.0 * ek)
+            rk = min(base + 2.0 * ek + 1e-9 * (1.0 + base + 2.0 * ek), rmax)
             ry0 = max(0, int(math.floor((y - rk - y0) / s)))
             ry1 = min(ncy - 1, int(math.floor((y + rk - y0) / s)))
             a = max(0, int(math.floor((x - rk - x0) / s)))
@@ -282,7 +283,10 @@ def _reach_keys(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h
     scipy's test), by the compiled grid kernel."""
     n = pts.shape[0]
     q = float(np.median(extra))
-    order, cell_start, ncx, ncy, x0, y0, s = _grid(pts, max(base + 2.0 * q, 1e-6))
+    # beyond cap_m nothing counts: the scan radius (and the cells) stop there (with a relative margin of 1e-9 over
+    # the kernel's test fl(dx^2 + dy^2) <= fl(cap^2))
+    rmax = float(cap_m) * (1.0 + 1e-9) + 1e-9 if math.isfinite(cap_m) else math.inf
+    order, cell_start, ncx, ncy, x0, y0, s = _grid(pts, max(min(base + 2.0 * q, rmax), 1e-6))
     xs, ys = pts[order, 0].copy(), pts[order, 1].copy()
     ex = np.ascontiguousarray(extra[order], dtype=np.float64)
     idx = order.astype(np.int64)
@@ -292,7 +296,7 @@ def _reach_keys(pts: np.ndarray, base: float, extra: np.ndarray, cap_m: float, h
     if vel is not None:
         us, vs = np.ascontiguousarray(vel[order, 0], dtype=np.float64), np.ascontiguousarray(vel[order, 1], dtype=np.float64)
     wd = np.zeros(0, dtype=np.bool_) if wide is None else np.ascontiguousarray(wide[order], dtype=np.bool_)
-    args = (xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, float(base), cap2, n, us, vs, float(h) if vel is not None else -1.0,
+    args = (xs, ys, ex, idx, cell_start, ncx, ncy, x0, y0, s, float(base), cap2, rmax, n, us, vs, float(h) if vel is not None else -1.0,
             wd)
     keys = np.empty(max(16 * n + 1024, _KEYS_ROOM[0] + _KEYS_ROOM[0] // 4), dtype=np.int64)
     total = kern(*args, keys)

@@ -192,6 +192,7 @@ def warm_up() -> None:
     apply_backstop(a_nom, da, 2.0)
     # the MFG tracking's formation mean (guidance.controller._formation_error), with its call's argument types
     i64 = np.array([0, 0], dtype=np.int64)
+    backstop_kernels.slot_claims(i64, sensed, own, np.ones(1, dtype=np.bool_), 1.0, 1.0)
     backstop_kernels.formation_sums(i64, np.array([1, 2], dtype=np.int64), sensed, own, np.zeros((1, 4)),
                            np.array([0, 1, 2], dtype=np.int64), np.array([0, 1, 2], dtype=np.int64), np.zeros((3, 4)),
                            np.zeros(1, dtype=np.int64), 1, 1.0, 1.0, 0.5, 3.0)

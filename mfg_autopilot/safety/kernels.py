@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
+__all__ = ["slot_claims", "half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
            "formation_sums", "braking_scan", "distinct_dense"]
 
 
@@ -702,6 +702,25 @@ def orca_select(own, sensed_states, owner, ids, n, nd2, max_neighbours):
             k += 1
         n_out += k
     return out[:n_out].copy()
+
+
+@njit(cache=True)
+def slot_claims(owner, states, own_p, parked, ps2, thr2):
+    """(m,) bool: the MFG backstop's own-slot claim (``guidance.controller._backstop_rows``): entry p's sensed state
+    (states (m, 4)) is within the claim radius of its owner row's own particle own_p (n, 4), that particle parked
+    (parked (n,)), in the plan metric |dr|^2 + ps2 |dv|^2 < thr2 (the numpy formulation's numbers, in its order)."""
+    m = states.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    for p in range(m):
+        o = owner[p]
+        if not parked[o]:
+            continue
+        d0 = states[p, 0] - own_p[o, 0]
+        d1 = states[p, 1] - own_p[o, 1]
+        d2 = states[p, 2] - own_p[o, 2]
+        d3 = states[p, 3] - own_p[o, 3]
+        out[p] = (d0 * d0 + d1 * d1) + ps2 * (d2 * d2 + d3 * d3) < thr2
+    return out
 
 
 @njit(cache=True)
