@@ -1,6 +1,7 @@
 """How much a healthy UAV's acceleration jitters in calm cruise, and why the braking test must subtract it.
 
     .venv/bin/python bench/tracking_jitter.py [--families circle,paper,swap4] [--n 1000] [--seed 83] [--steps 300]
+                                              [--loop-only]
 
 Prints the gains of eq. 8's tracking feedback at the start weights (the LQ value model, TrackingParams' cost): the
 acceleration per metre of position error and per m/s of velocity error, and the velocity loop's gain over one
@@ -8,7 +9,11 @@ control period (kv dt; above 1 a velocity error comes back with the opposite sig
 flight (MFG default, no fault): the spread of every UAV's along-track acceleration in cruise (its velocity change
 over a control period / dt, along its previous velocity, while it and the sample before and after fly 3.4-4.6 m/s;
 the plan's particles cruise at a constant 4 m/s there), the share of samples below -0.9 and -0.6 m/s^2, the spread
-of the command alone and the wind's (V_o sqrt(dt) / dt per axis). Last, each flight again with the braking test not
+of the command alone and the wind's (V_o sqrt(dt) / dt per axis). Then the held loop per axis, linear, wind only
+(``held_loop``): eq. 8's gains held over the period on eq. 9 with drag c0 (zero-order hold), its closed-loop
+eigenvalues, and the command and tracking-error spread it makes of the wind, next to the discrete-time LQ design of
+the same weights (Q dt, R dt: the held command's Riccati equation) - the alternative the sixteenth session proposed.
+Last, each flight again with the braking test not
 subtracting the neighbour's own tracking (BackstopParams.plan_mismatch_brake_expected False, 0.9 m/s^2: the
 fifteenth session's test): smallest separation and backstop interventions, both ways.
 """
@@ -37,6 +42,46 @@ def along_track_stats(vel_m_s: np.ndarray, acc_m_s2: np.ndarray, dt_s: float) ->
             "below_0.6": float(np.mean(x < -0.6)), "command_rms": float(c.std())}
 
 
+def held_loop(kp: float, kv: float, c0_per_s: float, dt_s: float, wind_m_s_sqrt_s: float, steps: int,
+              rng: np.random.Generator) -> dict:
+    """One axis of the tracking error (position, velocity) under eq. 9 with drag c0 and the command a = -kp e_r - kv e_v
+    held for dt (zero-order hold, exact), the wind a velocity kick N(0, (V_o sqrt(dt))^2) per period. Returns the
+    closed-loop eigenvalues, their largest magnitude, and over ``steps`` periods the rms of the command, of the
+    position and velocity errors, and the command's correlation with itself a period later (< 0: it alternates)."""
+    from scipy.linalg import expm
+
+    m = np.zeros((3, 3))
+    m[0, 1], m[1, 1], m[1, 2] = 1.0, -c0_per_s, 1.0
+    e = expm(m * dt_s)
+    ad, bd = e[:2, :2], e[:2, 2]
+    k = np.array([kp, kv])
+    eig = np.linalg.eigvals(ad - np.outer(bd, k))
+    x, xs, us = np.zeros(2), np.empty((steps, 2)), np.empty(steps)
+    kick = rng.normal(0.0, wind_m_s_sqrt_s * np.sqrt(dt_s), steps)
+    for t in range(steps):
+        u = -float(k @ x)
+        xs[t], us[t] = x, u
+        x = ad @ x + bd * u
+        x[1] += kick[t]
+    return {"eig": eig, "radius": float(np.max(np.abs(eig))), "cmd_rms": float(us.std()), "pos_rms": float(xs[:, 0].std()),
+            "vel_rms": float(xs[:, 1].std()), "cmd_lag1": float(np.corrcoef(us[1:], us[:-1])[0, 1])}
+
+
+def discrete_lq_gains(c1: float, c2: float, c3: float, c0_per_s: float, dt_s: float) -> tuple[float, float]:
+    """(kp, kv) of the discrete-time LQ design for the held command: the discrete Riccati equation of one axis of eq. 9
+    (zero-order hold) with the per-period weights Q = diag(c1, c2) dt, R = c3 dt."""
+    from scipy.linalg import expm, solve_discrete_are
+
+    m = np.zeros((3, 3))
+    m[0, 1], m[1, 1], m[1, 2] = 1.0, -c0_per_s, 1.0
+    e = expm(m * dt_s)
+    ad, bd = e[:2, :2], e[:2, 2:]
+    q, r = np.diag([c1, c2]) * dt_s, np.array([[c3 * dt_s]])
+    P = solve_discrete_are(ad, bd, q, r)
+    k = np.linalg.solve(r + bd.T @ P @ bd, bd.T @ P @ ad)[0]
+    return float(k[0]), float(k[1])
+
+
 def main(argv=None) -> None:
     from mfg_autopilot.paper.features import make_sigma_H
     from mfg_autopilot.paper.model import lqr_value_weights, optimal_action
@@ -49,6 +94,7 @@ def main(argv=None) -> None:
     ap.add_argument("--n", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=83)
     ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--loop-only", action="store_true", help="print the gains and the held loop only (no flights)")
     a = ap.parse_args(argv)
     p = preset_by_name("default")
     sigma_H = make_sigma_H(p.learner.state_scale)
@@ -59,6 +105,20 @@ def main(argv=None) -> None:
           f"error; over the {p.dt_s:g} s period kv dt = {kv * p.dt_s:.2f}")
     wind = float(np.max(np.abs(np.diag(p.cost.V_o))))
     print(f"the wind alone: {wind * np.sqrt(p.dt_s) / p.dt_s:.3f} m/s^2 rms per axis (V_o sqrt(dt) / dt)\n")
+    tc, c0 = p.tracking_cost, p.cost.c0_per_s
+    print("the held loop, one axis, wind only (200,000 periods, seed 0):\n")
+    print("| gains | kp (/s^2) | kv (/s) | closed-loop eigenvalues | largest magnitude | command rms (m/s^2) | "
+          "position error rms (m) | velocity error rms (m/s) | command's lag-1 correlation |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, (gp, gv) in (("eq. 8 at the start weights (continuous Riccati)", (kp, kv)),
+                           ("discrete LQ, the same weights", discrete_lq_gains(tc.c1, tc.c2, tc.c3, c0, p.dt_s))):
+        r = held_loop(gp, gv, c0, p.dt_s, wind, 200_000, np.random.default_rng(0))
+        ev = ", ".join(f"{z.real:.3f}{z.imag:+.3f}j" for z in r["eig"])
+        print(f"| {name} | {gp:.2f} | {gv:.2f} | {ev} | {r['radius']:.3f} | {r['cmd_rms']:.3f} | {r['pos_rms']:.4f} | "
+              f"{r['vel_rms']:.4f} | {r['cmd_lag1']:+.2f} |")
+    print()
+    if a.loop_only:
+        return
     print("| family | N | seed | cruise samples | along-track acc rms (m/s^2) | below -0.9 | below -0.6 | command rms | "
           "with the tracking subtracted: min sep (m), interventions | without (0.9 m/s^2): min sep (m), interventions |")
     print("|---|---|---|---|---|---|---|---|---|---|")

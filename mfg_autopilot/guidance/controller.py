@@ -1019,10 +1019,11 @@ class DefaultMFGController(_DefaultBase):
         the command eq. 8 makes of their deviation from their particle at the previous sample (estimated from the
         sensed state and the measured braking; the observing row's value model w_H stands in for theirs), and beyond it
         less own_ref too ((n, 2) per row, the common mode of _unplanned_by_braking; None: not known this step). A UAV
-        that was faster than its particle brakes back by command (eq. 8 overshoots at the 0.5 s period); a vehicle in
+        that was faster than its particle brakes back by command (eq. 8's nearly deadbeat answer to the last period's
+        wind); a vehicle in
         Hold brakes whatever its deviation was. docs/default_controller.md, "The braking test subtracts the
         neighbour's own tracking"."""
-        p, tp, dt = self.preset, self.preset.tracking, self.preset.dt_s
+        p, dt = self.preset, self.preset.dt_s
         prev = self._plan_s_hist.get(step - 1)
         if prev is None:
             return np.ones(idx.size, dtype=bool)
@@ -1031,8 +1032,7 @@ class DefaultMFGController(_DefaultBase):
         v_prev = q[:, 2:4] - dt * meas
         p_prev = q[:, 0:2] - 0.5 * dt * (q[:, 2:4] + v_prev)
         e = np.concatenate([p_prev, v_prev], axis=1) - prev[part]
-        e = np.concatenate([cap_norm(e[:, 0:2], tp.e_pos_max_m), cap_norm(e[:, 2:4], tp.e_vel_max_m_s)], axis=1)
-        a_exp = a_plan[part] + optimal_action(self.sigma_H.grad_psi(e, self.w_H[sn.owner[idx]]), p.cost.c3)
+        a_exp = a_plan[part] + self._eq8_fb(e, sn.owner[idx])
         r = meas - a_exp
         speed = np.maximum(np.linalg.norm(v_prev, axis=1), 1e-9)
         th = p.backstop.plan_mismatch_brake_m_s2
@@ -1042,6 +1042,18 @@ class DefaultMFGController(_DefaultBase):
             r = r - own_ref[sn.owner[idx]]
             out &= (r[:, 0] * v_prev[:, 0] + r[:, 1] * v_prev[:, 1]) / speed < -th
         return out
+
+    def _leash(self, err: np.ndarray) -> np.ndarray:
+        """A tracking error (k, 4) as the value model sees it: position and velocity parts each capped in norm
+        (TrackingParams.e_pos_max_m, e_vel_max_m_s)."""
+        tp = self.preset.tracking
+        return np.concatenate([cap_norm(err[:, 0:2], tp.e_pos_max_m), cap_norm(err[:, 2:4], tp.e_vel_max_m_s)], axis=1)
+
+    def _eq8_fb(self, err: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Eq. 8's feedback on tracking errors err (k, 4), leashed, with the value models of bank rows ``rows`` (k,):
+        -(1 / 2 c3) B^T grad psi(e; w_H[rows]) (k, 2). act() leashes its own error the same way and takes grad psi
+        from the HJB update."""
+        return optimal_action(self.sigma_H.grad_psi(self._leash(err), self.w_H[rows]), self.preset.cost.c3)
 
     def _formation_error(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
         """(e_bar (n, 4), count (n,)): the mean deviation from the plan, s - s_plan, over the own vehicle and the
@@ -1093,12 +1105,8 @@ class DefaultMFGController(_DefaultBase):
         if rows.size == 0:
             return a_nom
 
-        def fb(err: np.ndarray) -> np.ndarray:
-            err = np.concatenate([cap_norm(err[:, 0:2], tp.e_pos_max_m), cap_norm(err[:, 2:4], tp.e_vel_max_m_s)], axis=1)
-            return optimal_action(self.sigma_H.grad_psi(err, self.w_H[rows]), p.cost.c3)
-
-        a_rel = cap_norm(fb(self._own_err[rows] - e_bar[rows]), a_max)
-        a_com = a_plan[rows] + fb(e_bar[rows])
+        a_rel = cap_norm(self._eq8_fb(self._own_err[rows] - e_bar[rows], rows), a_max)
+        a_com = a_plan[rows] + self._eq8_fb(e_bar[rows], rows)
         room = np.maximum(np.minimum(c_max, a_max - np.linalg.norm(a_rel, axis=1)), 0.0)
         a_com = cap_norm(a_com, room)
         out = a_nom.copy()
@@ -1167,7 +1175,7 @@ class DefaultMFGController(_DefaultBase):
         self._ref_pos = (self.plan.k, s_plan[:, 0:2].copy())
         e = own - s_plan
         self._own_err = e
-        e = np.concatenate([cap_norm(e[:, 0:2], tp.e_pos_max_m), cap_norm(e[:, 2:4], tp.e_vel_max_m_s)], axis=1)
+        e = self._leash(e)
         n = self.n
         grad_evals = np.zeros(n, dtype=np.int64)
         mf_evals = np.full(n, self.plan.N, dtype=np.int64)      # plan particles advanced per UAV
