@@ -114,7 +114,9 @@ class Controller(Protocol):
     # Optional (the default preset's controllers; the simulator uses them when present). A *reach* is
     # (base_m, extra_m (N,)) for a bank holding every vehicle, whose observed states (N, 4) are given:
     # vehicle j can change row i's action only if |r_j - r_i| <= base + extra_i + extra_j; a third element
-    # horizon_s adds: and only if min over 0 <= tau <= horizon_s of |d + tau u| <= base (d = r_j - r_i, u = v_j - v_i).
+    # horizon_s adds: and only if min over 0 <= tau <= horizon_s of |d + tau u| <= base (d = r_j - r_i, u = v_j - v_i);
+    # a fourth, wide (N,) bool, exempts the pairs of the wide rows from that test (they need every vehicle within
+    # base + extra_i + extra_j: the default MFG controller's rows near a vehicle off the plan).
     # ignores_sensed_if_heard = True: sensed vehicles also heard this step do not change the action.
     # def heard_cutoff_m(self, step: int, states: np.ndarray) -> tuple[float, np.ndarray] | None:
     #     """The reach of heard states (None: every heard state matters). The caller may then put in
