@@ -188,20 +188,6 @@ class _DefaultBase:
         m = states.shape[0]
         return np.full(m, trig_m), np.full(m, clear_m)
 
-    def _lost_hovering(self, st: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """_detour's candidates among sensed states st (m, 4) with ids (m,): (the entries that hover - slower than
-        ``hover_max_speed_m_s`` - and are farther than ``onset_from_m`` from their own particle, ascending; that
-        distance)."""
-        idx = np.flatnonzero(st[:, 2] ** 2 + st[:, 3] ** 2 < self.preset.backstop.hover_max_speed_m_s ** 2)
-        if idx.size == 0:
-            return idx, np.zeros(0)
-        part = self._particles_of(ids[idx])
-        known = part >= 0
-        idx, part = idx[known], part[known]
-        dist = np.hypot(*(st[idx, 0:2] - self.plan.states[part, 0:2]).T)
-        far = dist > self.preset.detour.onset_from_m
-        return idx[far], dist[far]
-
     def _yielding(self, sn: Neighbours, covered: np.ndarray) -> np.ndarray:
         """(m,) bool: sensed entries the observing row yields to (MFG; HJB_d: none). covered (m,): the entries that
         already get a response."""
@@ -461,8 +447,8 @@ class DefaultMFGController(_DefaultBase):
 
     def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray, float, np.ndarray] | None:
         """As the base class while every vehicle flies the plan, with the closest-approach test over the horizon
-        (the reach (base_m, extra_m (N,), horizon_s, wide (N,)) of mfg_swarm.spatial.pairs_within_reach). A row within the sensor range of a vehicle that
-        might be 'unplanned' gets the whole range (extra_i >= the range): the escape manoeuvre (backstop.escape_acc)
+        (the reach (base_m, extra_m (N,), horizon_s, wide (N,)) of mfg_swarm.spatial.pairs_within_reach). A row
+        within the sensor range of a vehicle that might be 'unplanned' gets the whole range (extra_i >= the range): the escape manoeuvre (backstop.escape_acc)
         then looks at every sensed vehicle over candidate accelerations up to a_max, far beyond the trigger reach, and
         the crowd fallback counts every sensed vehicle; so does a row that may yield (_yielding: off its own particle)
         or that may claim its parked slot (_claim_rows); None (everything within the range, for every row) when that
@@ -546,7 +532,7 @@ class DefaultMFGController(_DefaultBase):
         # <= h (base: the largest trigger plus the sensor's margins), and the formation's neighbours are within the base
         # now (tau = 0). In streams that cross (swap4, crossing, circle) |v_i - c| is the stream speed and base +
         # extra_i + extra_j spans the sensor range; a UAV's own stream mates keep u ~ 0 (measured: swap4 N = 10,000,
-        # 1.36 million sensed entries per step -> BENCH)
+        # 1.36 -> ~0.70 million sensed entries per step; docs/benchmarks.md, seventeenth round)
         return reach[0], reach[1], h, wide_rows
 
     def _vehicle_particles(self, n: int) -> np.ndarray:
@@ -617,13 +603,17 @@ class DefaultMFGController(_DefaultBase):
         metric |dr|^2 + (plan_mismatch_s |dv|)^2 (the plan -
         the same on every UAV - says where everyone should be; no communication needed), and those
         lost to the plan (_lost)."""
-        d = self._distinct_sensed(sensed_states, ids)
-        if d is None:           # ids missing, or differing states under one id: every entry
-            return self._off_plan(sensed_states, ids) | self._lost(sensed_states, ids)
-        # each sensed vehicle once (many rows sense it, with the same state): both tests per distinct id
+        return self._by_vehicle(lambda q, i: self._off_plan(q, i) | self._lost(q, i), sensed_states, ids)
+
+    def _by_vehicle(self, test, states: np.ndarray, ids: np.ndarray | None) -> np.ndarray:
+        """(m,) test(states, ids) for sensed entries, evaluated once per distinct sensed vehicle (many rows sense it,
+        with the same state: _distinct_sensed) and spread back to its entries; entry by entry where ids are missing or
+        one id's entries differ. ``test`` decides each entry from its own state and id alone."""
+        d = self._distinct_sensed(states, ids)
+        if d is None:
+            return test(states, ids)
         first, inv = d
-        q1, i1 = sensed_states[first], np.asarray(ids, dtype=np.int64)[first]
-        return (self._off_plan(q1, i1) | self._lost(q1, i1))[inv]
+        return test(states[first], np.asarray(ids, dtype=np.int64)[first])[inv]
 
     def _lost(self, states: np.ndarray, ids: np.ndarray | None) -> np.ndarray:
         """(m,) bool: vehicles farther than ``plan_lost_m`` from their own plan particle (known by their id from the
@@ -852,14 +842,8 @@ class DefaultMFGController(_DefaultBase):
                 return out
             # only the rows that sense a failed vehicle (every vehicle within the sensor range: sensed_cutoff_m makes
             # such a row wide, so the entries are the same under the simulator's reach-limited delivery)
-            d = self._distinct_sensed(sn.states, sn.ids)
-            if d is None:
-                lost = self._lost(sn.states, sn.ids)
-            else:
-                # each sensed vehicle once (_unplanned asked the same of these arrays: one dedup per step); at
-                # N = 10,000 the pad's ~3 million entries per step took 0.44 s entry by entry
-                first, inv = d
-                lost = self._lost(sn.states[first], np.asarray(sn.ids, dtype=np.int64)[first])[inv]
+            # once per distinct vehicle (at N = 10,000 the pad's ~3 million entries took 0.44 s per step one by one)
+            lost = self._by_vehicle(self._lost, sn.states, sn.ids)
             if not np.any(lost):
                 return out
             near = np.bincount(sn.owner[lost], minlength=self.n) > 0
@@ -1027,8 +1011,7 @@ class DefaultMFGController(_DefaultBase):
         sensed state and the measured braking; the observing row's value model w_H stands in for theirs), and beyond it
         less own_ref too ((n, 2) per row, the common mode of _unplanned_by_braking; None: not known this step). A UAV
         that was faster than its particle brakes back by command (eq. 8's nearly deadbeat answer to the last period's
-        wind); a vehicle in
-        Hold brakes whatever its deviation was. docs/default_controller.md, "The braking test subtracts the
+        wind); a vehicle in Hold brakes whatever its deviation was. docs/default_controller.md, "The braking test subtracts the
         neighbour's own tracking"."""
         p, dt = self.preset, self.preset.dt_s
         prev = self._plan_s_hist.get(step - 1)

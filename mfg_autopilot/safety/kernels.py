@@ -24,8 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["slot_claims", "half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
-           "formation_sums", "braking_scan", "distinct_dense"]
+__all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
+           "slot_claims", "formation_sums", "braking_scan", "distinct_dense"]
 
 
 @njit(cache=True)

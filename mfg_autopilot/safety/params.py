@@ -42,8 +42,8 @@ class BackstopParams:
     plan_mismatch_brake_common: str = "disturbance"
     # ... and (plan_mismatch_brake_expected) beyond what the vehicle's own tracking explains: the command eq. 8 makes of
     # its deviation from its particle at the previous sample (estimated from the sensed states; the observer's value
-    # model stands in for its own), with and without the common mode above. Eq. 8's velocity gain (~2.9 /s) overshoots
-    # over the 0.5 s period, so a UAV faster than its particle brakes back by command: in calm cruise a UAV's
+    # model stands in for its own), with and without the common mode above. Eq. 8's held loop is nearly deadbeat at
+    # the 0.5 s period, so a UAV faster than its particle brakes back by command a period later: in calm cruise a UAV's
     # along-track acceleration spreads 0.32 m/s^2 rms (its command 0.30, the wind 0.14), and without this 0.9 m/s^2 was
     # under 3 of them (circle N = 1,000 seed 83, calm: 60 vehicles flagged, 83 interventions; 0 and 0 with it). The
     # threshold, 0.6: PX4's Hold brakes >= 1.0 m/s^2 on average over any control period that ends >= 0.5 s after it
