@@ -124,8 +124,10 @@ class Controller(Protocol):
     #     provided it gives Observation.heard_summary over all of them when the controller's
     #     ``needs_heard_summary`` is true; the action is the same as with the complete list (up
     #     to the summation order of the terms that remain)."""
-    # def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
-    #     """Likewise for the proximity sensor (Observation.sensed)."""
+    # def sensed_cutoff_m(self, states: np.ndarray, sensed_states: np.ndarray | None = None
+    #                     ) -> tuple[float, np.ndarray] | None:
+    #     """Likewise for the proximity sensor (Observation.sensed); sensed_states (N, 4): every vehicle's state
+    #     as the sensor will deliver it (the same to every observer), if the caller knows it."""
     # A controller may split step(obs) into three calls (the default MFG controller does; the runtime
     # then keeps only act() between the position and the setpoint): prepare(step) (what does not
     # depend on the observation; idempotent), act(obs) -> StepInfo (the action), finish() (what only

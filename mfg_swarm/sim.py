@@ -329,7 +329,10 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             # onboard proximity sensor: true neighbour states within its range, no communication, sorted by
             # (owner, id) and at the resolution of the ADSB_VEHICLE a mock forwards them in (docs/proximity.md);
             # only the sensed vehicles that can change an action (the controller's sensed_cutoff_m reach, if any)
-            reach = ctrl.sensed_cutoff_m(obs) if hasattr(ctrl, "sensed_cutoff_m") else None
+            # every vehicle's state as the sensor delivers it (the same to every observer): the reach can then
+            # decide on what the rows will see
+            q_all = quantise_sensed_states(obs)
+            reach = ctrl.sensed_cutoff_m(obs, sensed_states=q_all) if hasattr(ctrl, "sensed_cutoff_m") else None
             if reach is not None and not cfg.gossips:      # the rows straight away (hear() would need the pairs)
                 rows = rows_within_reach(obs[:, 0:2], reach, sensor_range_m, vel=obs[:, 2:4])
             else:
@@ -341,10 +344,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             comm[k] += counts
         if sp is not None or rows is not None:
             owner, other = rows if rows is not None else sensed_rows(sp)
-            seen = np.flatnonzero(np.bincount(other, minlength=n))     # = np.unique(other), without a sort
-            q = np.zeros_like(obs)
-            q[seen] = quantise_sensed_states(obs[seen])
-            sensed = Neighbours(np.take(q, other, axis=0), owner, other)     # = q[other]; np.take copies ~3x faster
+            sensed = Neighbours(np.take(q_all, other, axis=0), owner, other)     # = q_all[other]; np.take copies ~3x faster
         if plan_pos is not None:
             ctrl.prepare(k)
             plan_pos[k] = ctrl.plan_positions_m()

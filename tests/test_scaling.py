@@ -131,8 +131,8 @@ def test_sensing_only_within_the_sensed_cutoff_flies_bit_identically(monkeypatch
                     range_m=1.0 if mode == "hjb" else None, **extra)       # HJB_1: sensed but not heard vehicles
     # when the simulator delivers what the sensor sees within its range, and only within sensed_cutoff_m
     t_cut, m_cut = simulate(cfg, progress=False)
-    monkeypatch.setattr(pd._DefaultBase, "sensed_cutoff_m", lambda self, states: None)
-    monkeypatch.setattr(pd.DefaultMFGController, "sensed_cutoff_m", lambda self, states: None)
+    monkeypatch.setattr(pd._DefaultBase, "sensed_cutoff_m", lambda self, states, sensed_states=None: None)
+    monkeypatch.setattr(pd.DefaultMFGController, "sensed_cutoff_m", lambda self, states, sensed_states=None: None)
     t_all, m_all = simulate(cfg, progress=False)
     # then the flights are the same bit for bit
     assert m_all["backstop_activations"] > 0
@@ -245,3 +245,70 @@ def test_mfg_sensed_cutoff_widens_only_the_rows_within_the_sensor_range_of_a_veh
     base, extra, _, wide_rows = ctrl.sensed_cutoff_m(x)
     # then row 6 (its slot claimed) and row 5 (1.4 m off its particle: it may yield) get the whole range, no other
     assert set(np.flatnonzero(extra >= bp.sensor_range_m)) == {5, 6} == set(np.flatnonzero(wide_rows))
+
+
+@pytest.mark.parametrize("scenario,n,seed,extra", [("swap4", 144, 3, {"gust": sim.GustParams()}),
+                                                   ("crossing", 100, 4, {"fail_vehicle": 10, "fail_at_s": 20.0}),
+                                                   ("paper", 100, 4, {"fail_vehicle": 10, "fail_at_s": 20.0}),
+                                                   ("dense", 144, 2, {"gust": sim.GustParams()}),
+                                                   ("circle", 100, 4, {"fail_vehicle": 3, "fail_at_s": 12.0})])
+def test_the_cutoffs_braking_superset_holds_every_vehicle_a_row_flags(monkeypatch, scenario, n, seed, extra):
+    """sensed_cutoff_m's _braking_superset evaluates the braking test on the states as sensed, with the w_H of every row
+    within the sensor range and a bound on act()'s model update in between: every vehicle that a row's braking test
+    flags at a step (_unplanned_by_braking, in the flight itself) is in it. The old test (true states, the
+    quantisation's margins, no tracking residual) flagged many more: that difference is what widened the rows."""
+    import mfg_autopilot.guidance.controller as pd
+
+    sup_at, flagged_at, old_count = {}, {}, [0]
+    orig_sup, orig_flag = pd.DefaultMFGController._braking_superset, pd.DefaultMFGController._unplanned_by_braking
+
+    def sup(self, states, q, prev, a_plan, k):
+        out = orig_sup(self, states, q, prev, a_plan, k)
+        sup_at[k] = set(np.flatnonzero(out).tolist())
+        bp, dt = self.preset.backstop, self.preset.dt_s
+        a_marg = 2.0 * self._SENSED_VEL_MARGIN_M_S / dt
+        m2 = self._SENSED_POS_MARGIN_M + bp.plan_mismatch_s * self._SENSED_VEL_MARGIN_M_S \
+            + (0.5 * dt * dt + bp.plan_mismatch_s * dt) * a_marg
+        hint = np.arange(states.shape[0])
+        old = pd.braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg,
+                                  lambda x, rows: self._beyond_plan(x, bp.plan_mismatch_m - m2, hint[rows]))
+        old_count[0] += int(old.sum())
+        return out
+
+    def flag(self, sn, step, unplanned, own):
+        out = orig_flag(self, sn, step, unplanned, own)
+        flagged_at.setdefault(step, set()).update(np.asarray(sn.ids)[out].tolist())
+        return out
+
+    monkeypatch.setattr(pd.DefaultMFGController, "_braking_superset", sup)
+    monkeypatch.setattr(pd.DefaultMFGController, "_unplanned_by_braking", flag)
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="mfg", preset=DEFAULT, seed=seed, steps=120, **extra)
+    simulate(cfg, progress=False)
+    n_flagged = sum(len(v) for v in flagged_at.values())
+    assert n_flagged > 0                                   # the test is exercised: rows did flag by braking
+    for k, ids in flagged_at.items():
+        assert ids <= sup_at.get(k, set()), (k, ids - sup_at.get(k, set()))
+    n_sup = sum(len(v) for v in sup_at.values())
+    assert n_sup < old_count[0]
+
+
+def test_the_cutoffs_braking_superset_flags_nothing_in_calm_cruise():
+    """Calm swap4 (four streams through the middle): the old margin test flagged vehicles at most steps (their tracking
+    jitter looked like braking within its margins), each widening every row within 10 m; the superset flags none."""
+    import mfg_autopilot.guidance.controller as pd
+
+    counts, orig = [], pd.DefaultMFGController._braking_superset
+
+    def sup(self, states, q, prev, a_plan, k):
+        out = orig(self, states, q, prev, a_plan, k)
+        counts.append(int(out.sum()))
+        return out
+
+    pd_patch = pytest.MonkeyPatch()
+    pd_patch.setattr(pd.DefaultMFGController, "_braking_superset", sup)
+    try:
+        simulate(SimConfig(scenario=make_scenario("swap4", 400), mode="mfg", preset=DEFAULT, seed=1, steps=100),
+                 progress=False)
+    finally:
+        pd_patch.undo()
+    assert len(counts) == 99 and sum(counts) == 0

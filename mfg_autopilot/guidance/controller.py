@@ -140,7 +140,8 @@ class _DefaultBase:
     _SENSED_POS_MARGIN_M = 0.05
     _SENSED_VEL_MARGIN_M_S = 0.02
 
-    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+    def sensed_cutoff_m(self, states: np.ndarray, sensed_states: np.ndarray | None = None
+                        ) -> tuple[float, np.ndarray] | None:
         """For a bank holding every vehicle (observed states (N, 4)): the reach (base_m, extra_m (N,)):
         a vehicle j sensed by row i can change i's action only if |r_j - r_i| <= base + extra_i + extra_j,
         so a simulator may deliver only those (None: all within the sensor range). The backstop acts only
@@ -445,7 +446,8 @@ class DefaultMFGController(_DefaultBase):
                     "route": self.plan.route, "group_start_s": [float(x) for x in self.plan.start_s]}
         return {"plan": "interacting", "clearance_m": None}
 
-    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray, float, np.ndarray] | None:
+    def sensed_cutoff_m(self, states: np.ndarray, sensed_states: np.ndarray | None = None
+                        ) -> tuple[float, np.ndarray, float, np.ndarray] | None:
         """As the base class while every vehicle flies the plan, with the closest-approach test over the horizon
         (the reach (base_m, extra_m (N,), horizon_s, wide (N,)) of mfg_swarm.spatial.pairs_within_reach). A row
         within the sensor range of a vehicle that might be 'unplanned' gets the whole range (extra_i >= the range): the escape manoeuvre (backstop.escape_acc)
@@ -457,7 +459,10 @@ class DefaultMFGController(_DefaultBase):
         margin for the sensor's quantisation; the braking test (_unplanned_by_braking) also on the states passed at
         the previous step (kept here; None when there are none, a bank of one: the sensed_cutoff_m calls are the
         simulator's, one per step). A row with no such vehicle within its range decides exactly as when every vehicle
-        flies the plan (tests/test_scaling.py flies both deliveries bit for bit, with a gust and a failed vehicle)."""
+        flies the plan (tests/test_scaling.py flies both deliveries bit for bit, with a gust and a failed vehicle).
+        sensed_states (N, 4), if given: the states as the sensor delivers them to every row that senses them (the
+        simulator's quantisation, the same for every observer); the braking test is then evaluated as the rows will
+        evaluate it (_braking_superset) instead of the old test with the quantisation's margins."""
         bp = self.preset.backstop
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
@@ -498,8 +503,12 @@ class DefaultMFGController(_DefaultBase):
                 dt = self.preset.dt_s
                 a_marg = 2.0 * self._SENSED_VEL_MARGIN_M_S / dt
                 m2 = margin + (0.5 * dt * dt + bp.plan_mismatch_s * dt) * a_marg
-                beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m - m2, hint[rows])
-                unpl |= braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg, beyond)
+                if sensed_states is not None and np.shape(sensed_states) == states.shape and self.n == states.shape[0]:
+                    # the states as every row will sense them: the braking test itself (up to the rows' model update)
+                    unpl |= self._braking_superset(states, np.asarray(sensed_states, dtype=float), prev, a_plan, k)
+                else:
+                    beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m - m2, hint[rows])
+                    unpl |= braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg, beyond)
         wide_rows |= self._claim_rows(states, margin)
         if np.any(unpl):
             # every row within the sensor range of a possibly unplanned vehicle (the simulator's sensor: the same states)
@@ -534,6 +543,143 @@ class DefaultMFGController(_DefaultBase):
         # extra_i + extra_j spans the sensor range; a UAV's own stream mates keep u ~ 0 (measured: swap4 N = 10,000,
         # 1.36 -> ~0.70 million sensed entries per step; docs/benchmarks.md, seventeenth round)
         return reach[0], reach[1], h, wide_rows
+
+    def _braking_superset(self, states: np.ndarray, q: np.ndarray, prev: np.ndarray, a_plan: np.ndarray,
+                          k: int) -> np.ndarray:
+        """(N,) bool, for sensed_cutoff_m: the vehicles that some row within the sensor range of them may flag at step k
+        by the braking test (_unplanned_by_braking), a superset. states (N, 4) the true states (rows i <-> vehicles i:
+        a bank holding every vehicle), q (N, 4) as sensed (the same for every observer), prev the true states of
+        step k - 1. Per vehicle, with braking_scan's and _brakes_beyond_tracking's own operations: the previous
+        velocity sample the scan will take (the sensed one if the vehicle was delivered at k - 1: seen_v, else prev),
+        the braking along it beyond plan_mismatch_brake_m_s2, the shifted state beyond the plan, and the braking
+        beyond the neighbour's own tracking, eq. 8 with the observing row's w_H. That last test is linear in the
+        row's weights, a_fb . u = g . w_H (g from the features' velocity gradient at the neighbour's leashed
+        error), and act() updates w_H once per learner iteration before it (hjb_update: a normalised gradient step
+        of norm mu plus the regulariser's c_H grad R, |grad R| <= |e_v| |J_v(e)|_F / 2 c3, e the row's own leashed
+        error); so a row may flag j only if g . w_H - |g| delta_i exceeds what j's braking leaves, delta_i that
+        update's bound. Left out (they only remove flags): the common mode (own_ref), a row that already senses an
+        unplanned vehicle. A 1e-9 slack on every threshold covers the summation order."""
+        bp, dt = self.preset.backstop, self.preset.dt_s
+        N = states.shape[0]
+        out = np.zeros(N, dtype=bool)
+        if self._plan_ids is None:
+            return out
+        th, slack = bp.plan_mismatch_brake_m_s2, 1e-9
+        part = self._vehicle_particles(N)
+        cand = np.flatnonzero(part >= 0)
+        p = part[cand]
+        vp = prev[p, 2:4].copy()
+        if self._seen_k is not None and self._seen_k.size == self.plan.N:
+            seen = self._seen_k[p] == k - 1
+            vp[seen] = self._seen_v[p[seen]]
+        ap = a_plan[p]
+        ad = (q[cand, 2:4] - vp) / dt - ap
+        speed = np.sqrt(vp[:, 0] ** 2 + vp[:, 1] ** 2)
+        den = np.maximum(speed, 1e-9)
+        brakes = ((ad[:, 0] * vp[:, 0] + ad[:, 1] * vp[:, 1]) / den < -th + slack) & (speed > th * dt - slack)
+        if not np.any(brakes):
+            return out
+        cand, p, vp, ad, den = cand[brakes], p[brakes], vp[brakes], ad[brakes], den[brakes]
+        qc = q[cand]
+        shifted = qc + np.concatenate([0.5 * dt * dt * ad, dt * ad], axis=1)
+        far = self._beyond_plan(shifted, bp.plan_mismatch_m - 1e-6, p)
+        cand, p, vp, ad, den, qc = cand[far], p[far], vp[far], ad[far], den[far], qc[far]
+        plan_prev = self._plan_s_hist.get(k - 1)
+        if cand.size == 0 or not bp.plan_mismatch_brake_expected or plan_prev is None:
+            out[cand] = True
+            return out
+        # the neighbour's deviation at the previous sample, as _brakes_beyond_tracking estimates it, and g
+        u = vp / den[:, None]
+        p_prev = qc[:, 0:2] - 0.5 * dt * (qc[:, 2:4] + vp)
+        e = self._leash(np.concatenate([p_prev, vp], axis=1) - plan_prev[p])
+        c3 = self.preset.cost.c3
+        Jv = self._feature_grad_v(e)                                     # (k, M, 2)
+        g = -(Jv[:, :, 0] * u[:, 0:1] + Jv[:, :, 1] * u[:, 1:2]) / (2.0 * c3)   # a_fb . u = g . w
+        A = (ad[:, 0] * vp[:, 0] + ad[:, 1] * vp[:, 1]) / den            # (meas - a_plan) . u
+        # the rows that sense each candidate
+        pairs = cKDTree(states[cand, 0:2]).sparse_distance_matrix(cKDTree(states[:, 0:2]), bp.sensor_range_m + 1e-6,
+                                                                   output_type="ndarray")
+        which, rows = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        other = rows != cand[which]
+        rows, which = rows[other], which[other]
+        if rows.size == 0:
+            return out
+        delta = self._model_update_bound(states, np.unique(rows))
+        gw = np.einsum("pm,pm->p", g[which], self.w_H[rows])
+        gn = np.sqrt(np.einsum("km,km->k", g, g))
+        maybe = A[which] - gw - gn[which] * delta[rows] < -th + slack
+        out[cand[np.unique(which[maybe])]] = True
+        return out
+
+    def _feature_grad_v(self, e: np.ndarray) -> np.ndarray:
+        """(k, M, 2): the velocity part of every sigma_H feature's gradient at the states e (k, 4)."""
+        E = np.asarray(self.sigma_H.exponents, dtype=np.int64)
+        scale = np.asarray(self.sigma_H.scale, dtype=float)
+        k, M = e.shape[0], E.shape[0]
+        if k == 0:
+            return np.zeros((0, M, 2))
+        st = e / scale[None, :]
+        pw = st[:, :, None] ** np.arange(int(E.max()) + 1)[None, None, :]      # (k, 4, D + 1): s~_d^p
+        out = np.empty((k, M, 2))
+        for c, d in enumerate((2, 3)):
+            ex = E.copy()
+            ex[:, d] = np.maximum(ex[:, d] - 1, 0)
+            # d sigma_m / d s_d = E_md / scale_d s~_d^(E_md - 1) prod_{d' != d} s~_d'^E_md'
+            f = pw[:, 0, ex[:, 0]] * pw[:, 1, ex[:, 1]] * pw[:, 2, ex[:, 2]] * pw[:, 3, ex[:, 3]]
+            out[:, :, c] = f * (E[:, d] / scale[d])[None, :]
+        return out
+
+    def _model_update_bound(self, states: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(n,) an upper bound of |w_H' - w_H| over act()'s learner iterations for the bank rows ``rows`` (the other
+        entries: inf), for _braking_superset. hjb_update's step is mu g / |g| (norm mu) plus c_H grad R, |grad R|
+        <= |e_v / scale_v^2| |J_v(e)|_F / 2 c3 (e the row's leashed error, |d sat| <= 1); e is the own state less the
+        own particle, exactly, except for a row whose particle may be deflected around a failed vehicle this step
+        (_detour: within the sensor range of a vehicle farther than onset_from_m from its own particle): there the
+        bound over the whole leash box (|e_p| <= e_pos_max_m, |e_v| <= e_vel_max_m_s)."""
+        p, tp = self.preset, self.preset.tracking
+        out = np.full(self.n, np.inf)
+        if not tp.learn_hjb:
+            out[rows] = 0.0
+            return out
+        lp = p.learner
+        scale = np.asarray(self.sigma_H.scale, dtype=float)
+        c3 = self.track_preset.cost.c3
+        e = self._leash(states[rows] - self.plan.states[self.own_index[rows]])
+        jv = np.sqrt(np.einsum("kmd,kmd->k", *(2 * [self._feature_grad_v(e)])))
+        cf = np.sqrt((e[:, 2] / scale[2] ** 2) ** 2 + (e[:, 3] / scale[3] ** 2) ** 2)
+        b = lp.K * (lp.mu + lp.c_H * cf * jv / (2.0 * c3))
+        dp = p.detour
+        if dp.enabled:
+            part = self._vehicle_particles(states.shape[0])
+            known = np.flatnonzero(part >= 0)
+            dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
+            lost = known[dr[:, 0] ** 2 + dr[:, 1] ** 2 > (dp.onset_from_m - 2.0 * self._SENSED_POS_MARGIN_M) ** 2]
+            if lost.size:
+                d, _ = cKDTree(states[lost, 0:2]).query(states[rows, 0:2], k=1,
+                                                        distance_upper_bound=p.backstop.sensor_range_m + 1e-6)
+                near = np.isfinite(d)
+                if np.any(near):
+                    b[near] = lp.K * (lp.mu + lp.c_H * self._box_grad_bound() / (2.0 * c3))
+        out[rows] = b
+        return out
+
+    def _box_grad_bound(self) -> float:
+        """max over the leash box of |e_v / scale_v^2| |J_v(e)|_F (J_v: the sigma_H features' velocity gradient), bounded
+        monomial by monomial (|e_x|, |e_y| <= e_pos_max_m, |e_vx|, |e_vy| <= e_vel_max_m_s)."""
+        if getattr(self, "_box_bound", None) is None:
+            tp = self.preset.tracking
+            E = np.asarray(self.sigma_H.exponents, dtype=np.int64)
+            scale = np.asarray(self.sigma_H.scale, dtype=float)
+            b = np.array([tp.e_pos_max_m, tp.e_pos_max_m, tp.e_vel_max_m_s, tp.e_vel_max_m_s]) / scale
+            J = np.zeros((E.shape[0], 2))
+            for m in range(E.shape[0]):
+                for c, d in enumerate((2, 3)):
+                    if E[m, d] > 0:
+                        ex = E[m].copy()
+                        ex[d] -= 1
+                        J[m, c] = E[m, d] / scale[d] * np.prod(b ** ex)
+            self._box_bound = float(tp.e_vel_max_m_s / np.min(scale[2:4] ** 2) * np.sqrt(np.sum(J * J)))
+        return self._box_bound
 
     def _vehicle_particles(self, n: int) -> np.ndarray:
         """(n,) _particles_of(arange(n)): the plan particle of vehicles 0..n-1 (a simulator bank's rows), kept (the map

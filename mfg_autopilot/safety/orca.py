@@ -220,7 +220,7 @@ class OrcaController:
     """Bound on how far a sensed position may lie from the true one: the proximity sensor's ADS-B
     resolution (1e-7 deg: <= 0.0056 m north, 0.0038 m east, half a step each way), with room."""
 
-    def sensed_cutoff_m(self, states: np.ndarray) -> tuple[float, np.ndarray] | None:
+    def sensed_cutoff_m(self, states: np.ndarray, sensed_states: np.ndarray | None = None) -> tuple[float, np.ndarray] | None:
         """For a bank holding every vehicle (observed states (N, 4)): the reach (base_m, extra_m (N,))
         (``interface.Controller``): a sensed vehicle j can change row i's action only if
         |r_j - r_i| <= base + extra_i + extra_j, so a simulator may deliver only those (None: all within
