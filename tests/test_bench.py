@@ -130,6 +130,32 @@ def test_readme_table_formats_the_sweep_and_a_later_file_wins(tmp_path):
                        "3 / 0.012 m / 100 % (63 s) / 700 / 0 / 2 s |")
 
 
+def test_safety_sweep_reports_the_separation_against_half_the_start_spacing(tmp_path):
+    """bench/safety_sweep.py flies real `mfg-swarm sim` processes and reports, per run, the smallest separation over the
+    scenario's start spacing (issue 18's >= 0.5), marking a run below it, and counts such runs on its last line."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    spec = importlib.util.spec_from_file_location("safety_sweep", root / "bench" / "safety_sweep.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.separation_ratio({"min_separation_m": 0.3, "start_spacing_m": 1.0}) == pytest.approx(0.3)
+    assert mod.separation_ratio({"min_separation_m": 0.3}) is None
+    assert mod._fmt_ratio(0.3) == "0.30 <" and mod._fmt_ratio(0.71) == "0.71"
+    proc = subprocess.run([sys.executable, str(root / "bench" / "safety_sweep.py"), "--families", "paper", "--n", "16",
+                           "--modes", "mfg", "--steps", "20", "--out", str(tmp_path)], capture_output=True, text=True,
+                          timeout=300, cwd=root)
+    assert proc.returncode == 0, proc.stderr
+    (row,) = json.loads((tmp_path / "safety_sweep.json").read_text())
+    m = json.loads((tmp_path / "paper-n16-mfg-s1" / "metrics.json").read_text())
+    assert row["separation_over_start_spacing"] == pytest.approx(m["min_separation_m"] / m["start_spacing_m"])
+    assert row["start_spacing_m"] == m["start_spacing_m"] > 0
+    below = int(row["separation_over_start_spacing"] < 0.5)
+    assert proc.stdout.strip().splitlines()[-1] == (f"1 runs: {int(row['collision_pairs'] > 0)} with a collided pair, "
+                                                   f"{below} below half the start spacing, 0 failed to run")
+
+
 def test_tracking_jitter_counts_only_cruise_samples_and_measures_the_along_track_spread():
     """bench/tracking_jitter.py's statistic: a UAV cruising along x at 4 m/s whose speed alternates between 4.1 and
     3.9 m/s from one 0.5 s period to the next accelerates +-0.4 m/s^2 along its track (rms 0.4); a sideways wobble
