@@ -461,8 +461,8 @@ class DefaultMFGController(_DefaultBase):
         simulator's, one per step). A row with no such vehicle within its range decides exactly as when every vehicle
         flies the plan (tests/test_scaling.py flies both deliveries bit for bit, with a gust and a failed vehicle).
         sensed_states (N, 4), if given: the states as the sensor delivers them to every row that senses them (the
-        simulator's quantisation, the same for every observer); the braking test is then evaluated as the rows will
-        evaluate it (_braking_superset) instead of the old test with the quantisation's margins."""
+        simulator's quantisation, the same for every observer); the state, lost and braking tests are then evaluated
+        as the rows will evaluate them (_braking_superset for the braking) instead of with the quantisation's margins."""
         bp = self.preset.backstop
         if not bp.enabled or self.plan is None or states.shape[0] == 0:
             return None
@@ -479,7 +479,11 @@ class DefaultMFGController(_DefaultBase):
         # the vehicles that may be unplanned to some row (off the plan, lost to it, or braking off it): every row within
         # the sensor range of one needs every vehicle it senses (the crowd count, the escape, the braking test's skip);
         # and the rows that may yield (the escape): wide_rows. The rest keep the reach below.
-        unpl = self._beyond_plan(states, bp.plan_mismatch_m - margin, hint)
+        # with the states as sensed (sensed_states) the state and lost tests are the rows' own, on the same numbers (a
+        # 1e-9 m slack); else on the true states with the quantisation's margin
+        exact = sensed_states is not None and np.shape(sensed_states) == states.shape and self.n == states.shape[0]
+        q = np.asarray(sensed_states, dtype=float) if exact else states
+        unpl = self._beyond_plan(q, bp.plan_mismatch_m - (1e-9 if exact else margin), hint)
         wide_rows = np.zeros(states.shape[0], dtype=bool)
         yield_m = bp.escape_yield_min_dev_m if bp.escape and bp.escape_yield else float("inf")
         if (bp.plan_lost_m > 0 or np.isfinite(yield_m)) and self._plan_ids is not None:
@@ -489,7 +493,8 @@ class DefaultMFGController(_DefaultBase):
             dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
             d2 = dr[:, 0] ** 2 + dr[:, 1] ** 2
             if bp.plan_lost_m > 0:
-                unpl[known[d2 > (bp.plan_lost_m - margin) ** 2]] = True
+                drq = q[known, 0:2] - self.plan.states[part[known], 0:2]
+                unpl[known[drq[:, 0] ** 2 + drq[:, 1] ** 2 > (bp.plan_lost_m - (1e-9 if exact else margin)) ** 2]] = True
             # _yielding: a row that far off its own particle may escape (its trigger predicts its nominal command
             # over the horizon, beyond the reach below)
             wide_rows[known[d2 > (yield_m - margin) ** 2]] = True
@@ -503,9 +508,9 @@ class DefaultMFGController(_DefaultBase):
                 dt = self.preset.dt_s
                 a_marg = 2.0 * self._SENSED_VEL_MARGIN_M_S / dt
                 m2 = margin + (0.5 * dt * dt + bp.plan_mismatch_s * dt) * a_marg
-                if sensed_states is not None and np.shape(sensed_states) == states.shape and self.n == states.shape[0]:
+                if exact:
                     # the states as every row will sense them: the braking test itself (up to the rows' model update)
-                    unpl |= self._braking_superset(states, np.asarray(sensed_states, dtype=float), prev, a_plan, k)
+                    unpl |= self._braking_superset(states, q, prev, a_plan, k)
                 else:
                     beyond = lambda q, rows: self._beyond_plan(q, bp.plan_mismatch_m - m2, hint[rows])
                     unpl |= braking_off_plan(states, prev[:, 2:4], a_plan, dt, bp.plan_mismatch_brake_m_s2 - a_marg, beyond)
