@@ -292,7 +292,7 @@ def test_the_cutoffs_braking_superset_holds_every_vehicle_a_row_flags(monkeypatc
     assert n_sup < old_count[0]
 
 
-def test_the_cutoffs_braking_superset_flags_nothing_in_calm_cruise():
+def test_the_cutoffs_braking_superset_flags_nothing_in_calm_cruise(monkeypatch):
     """Calm swap4 (four streams through the middle): the old margin test flagged vehicles at most steps (their tracking
     jitter looked like braking within its margins), each widening every row within 10 m; the superset flags none."""
     import mfg_autopilot.guidance.controller as pd
@@ -304,11 +304,6 @@ def test_the_cutoffs_braking_superset_flags_nothing_in_calm_cruise():
         counts.append(int(out.sum()))
         return out
 
-    pd_patch = pytest.MonkeyPatch()
-    pd_patch.setattr(pd.DefaultMFGController, "_braking_superset", sup)
-    try:
-        simulate(SimConfig(scenario=make_scenario("swap4", 400), mode="mfg", preset=DEFAULT, seed=1, steps=100),
-                 progress=False)
-    finally:
-        pd_patch.undo()
+    monkeypatch.setattr(pd.DefaultMFGController, "_braking_superset", sup)
+    simulate(SimConfig(scenario=make_scenario("swap4", 400), mode="mfg", preset=DEFAULT, seed=1, steps=100), progress=False)
     assert len(counts) == 99 and sum(counts) == 0
