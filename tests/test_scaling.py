@@ -307,3 +307,44 @@ def test_the_cutoffs_braking_superset_flags_nothing_in_calm_cruise(monkeypatch):
     monkeypatch.setattr(pd.DefaultMFGController, "_braking_superset", sup)
     simulate(SimConfig(scenario=make_scenario("swap4", 400), mode="mfg", preset=DEFAULT, seed=1, steps=100), progress=False)
     assert len(counts) == 99 and sum(counts) == 0
+
+
+def test_the_model_update_bound_holds_for_every_rows_hjb_step_in_a_flight(monkeypatch):
+    """_braking_superset's delta_i: act()'s change of each row's w_H (hjb_update, after the cutoff) is at most
+    _model_update_bound's figure for that row, computed at the cutoff from the states and the plan (a gust and a failed
+    vehicle, so that rows are detoured and errors are large); and the leash-box bound is above |e_v| |J_v(e)|_F at
+    seeded random errors in the box."""
+    import mfg_autopilot.guidance.controller as pd
+
+    bound_at, step_of, checked, worst = {}, [None], [0], [0.0]
+    orig_cut, orig_hjb = pd.DefaultMFGController.sensed_cutoff_m, pd.hjb_update
+
+    def cut(self, states, sensed_states=None):
+        out = orig_cut(self, states, sensed_states)
+        bound_at[self.plan.k] = self._model_update_bound(np.asarray(states, dtype=float), np.arange(self.n))
+        step_of[0] = self.plan.k
+        return out
+
+    def hjb(sigma, w, e, phi_g, preset):
+        res = orig_hjb(sigma, w, e, phi_g, preset)
+        d = bound_at.get(step_of[0])
+        if d is not None:
+            step = np.linalg.norm(res[0] - w, axis=1)
+            assert np.all(step <= d + 1e-12), (step_of[0], np.max(step - d))
+            checked[0] += step.size
+            worst[0] = max(worst[0], float(np.max(step / d)))
+        return res
+
+    monkeypatch.setattr(pd.DefaultMFGController, "sensed_cutoff_m", cut)
+    monkeypatch.setattr(pd, "hjb_update", hjb)
+    simulate(SimConfig(scenario=make_scenario("crossing", 100), mode="mfg", preset=DEFAULT, seed=4, steps=80,
+                       fail_vehicle=10, fail_at_s=20.0, gust=sim.GustParams()), progress=False)
+    assert checked[0] > 50 * 100 and worst[0] > 0.5          # the bound is met and not vacuous
+    ctrl = pd.DefaultMFGController(DEFAULT, make_scenario("paper", 4).destination_m)
+    tp = DEFAULT.tracking
+    rng = np.random.default_rng(7)
+    e = np.concatenate([rng.uniform(-1, 1, (2000, 2)) * tp.e_pos_max_m, rng.uniform(-1, 1, (2000, 2)) * tp.e_vel_max_m_s],
+                       axis=1)
+    e = ctrl._leash(e)
+    jv = np.sqrt(np.einsum("kmd,kmd->k", ctrl._feature_grad_v(e), ctrl._feature_grad_v(e)))
+    assert np.all(np.linalg.norm(e[:, 2:4], axis=1) * jv <= ctrl._box_grad_bound())
