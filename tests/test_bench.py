@@ -156,6 +156,38 @@ def test_safety_sweep_reports_the_separation_against_half_the_start_spacing(tmp_
                                                    f"{below} below half the start spacing, 0 failed to run")
 
 
+def test_closest_pair_reports_the_pair_step_by_step_with_signed_closing_and_accelerations(tmp_path):
+    """bench/closest_pair.py: two UAVs head-on (1 m/s each, 4 m apart), UAV 0 accelerating towards UAV 1 and UAV 1
+    braking away from it: closing +2 m/s, towards +0.5 / -0.3 m/s^2; then the report of a real `mfg-swarm sim` flight
+    names metrics.json's closest pair and lists --before + --after + 1 steps around it."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    spec = importlib.util.spec_from_file_location("closest_pair", root / "bench" / "closest_pair.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    T = 3
+    pos = np.zeros((T + 1, 2, 2))
+    vel = np.zeros((T + 1, 2, 2))
+    pos[:, 1, 0] = 4.0
+    vel[:, 0, 0], vel[:, 1, 0] = 1.0, -1.0
+    acc = np.zeros((T, 2, 2))
+    acc[:, 0, 0], acc[:, 1, 0] = 0.5, 0.3
+    (row,) = mod.pair_rows(pos, vel, acc, np.zeros((T, 2), dtype=bool), 0, 1, 1, 1)
+    assert row["dist_m"] == 4.0 and row["closing_m_s"] == 2.0
+    assert row["acc_i_towards_m_s2"] == 0.5 and row["acc_j_towards_m_s2"] == -0.3 and row["backstop_i"] is False
+    out = tmp_path / "flight"
+    subprocess.run([sys.executable, "-m", "mfg_swarm.cli", "sim", "--scenario", "crossing", "--n", "16", "--steps", "40",
+                    "--no-progress", "--out", str(out)], check=True, capture_output=True, timeout=300, cwd=root)
+    m = json.loads((out / "metrics.json").read_text())
+    i, j, k = m["closest_pair"]
+    text = mod.report(out, before=3, after=1)
+    assert text.splitlines()[0].startswith(f"{out}: UAVs {i} and {j}, {m['min_pair_distance_m']:.3f} m")
+    steps = [int(line.split("|")[1]) for line in text.splitlines()[3:]]
+    assert steps == list(range(max(0, k - 3), min(40, k + 1) + 1))
+
+
 def test_tracking_jitter_counts_only_cruise_samples_and_measures_the_along_track_spread():
     """bench/tracking_jitter.py's statistic: a UAV cruising along x at 4 m/s whose speed alternates between 4.1 and
     3.9 m/s from one 0.5 s period to the next accelerates +-0.4 m/s^2 along its track (rms 0.4); a sideways wobble
