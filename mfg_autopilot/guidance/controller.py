@@ -360,6 +360,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_ids: tuple[np.ndarray, np.ndarray] | None = None     # (sorted ids, their plan particles): exchange_t0
         self._id_table: np.ndarray | None = None    # id -> plan particle (-1: none) for small non-negative ids: exchange_t0
         self._index_particles: np.ndarray | None = None     # _particles_of(arange(N)), sensed_cutoff_m's lost test
+        self._box_bound: float | None = None        # _box_grad_bound's constant
         self._prepared: tuple | None = None     # (plan step, a_plan_all, centroid, centroid rate): prepare()
         self._pending: tuple | None = None      # act()'s FPK-update arguments for finish() (() for none); None: no act() open
         # the braking test (BackstopParams.plan_mismatch_brake_m_s2): per plan particle (= per vehicle id), the
@@ -493,8 +494,11 @@ class DefaultMFGController(_DefaultBase):
             dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
             d2 = dr[:, 0] ** 2 + dr[:, 1] ** 2
             if bp.plan_lost_m > 0:
-                drq = q[known, 0:2] - self.plan.states[part[known], 0:2]
-                unpl[known[drq[:, 0] ** 2 + drq[:, 1] ** 2 > (bp.plan_lost_m - (1e-9 if exact else margin)) ** 2]] = True
+                if exact:
+                    drq = q[known, 0:2] - self.plan.states[part[known], 0:2]
+                    unpl[known[drq[:, 0] ** 2 + drq[:, 1] ** 2 > (bp.plan_lost_m - 1e-9) ** 2]] = True
+                else:
+                    unpl[known[d2 > (bp.plan_lost_m - margin) ** 2]] = True
             # _yielding: a row that far off its own particle may escape (its trigger predicts its nominal command
             # over the horizon, beyond the reach below)
             wide_rows[known[d2 > (yield_m - margin) ** 2]] = True
@@ -554,7 +558,8 @@ class DefaultMFGController(_DefaultBase):
         """(N,) bool, for sensed_cutoff_m: the vehicles that some row within the sensor range of them may flag at step k
         by the braking test (_unplanned_by_braking), a superset. states (N, 4) the true states (rows i <-> vehicles i:
         a bank holding every vehicle), q (N, 4) as sensed (the same for every observer), prev the true states of
-        step k - 1. Per vehicle, with braking_scan's and _brakes_beyond_tracking's own operations: the previous
+        step k - 1. Per vehicle, by braking_scan itself (one row sensing every vehicle, on copies of its memory) and
+        _brakes_beyond_tracking's own estimate (_prev_deviation): the previous
         velocity sample the scan will take (the sensed one if the vehicle was delivered at k - 1: seen_v, else prev),
         the braking along it beyond plan_mismatch_brake_m_s2, the shifted state beyond the plan, and the braking
         beyond the neighbour's own tracking, eq. 8 with the observing row's w_H. That last test is linear in the
@@ -573,34 +578,31 @@ class DefaultMFGController(_DefaultBase):
         part = self._vehicle_particles(N)
         cand = np.flatnonzero(part >= 0)
         p = part[cand]
-        vp = prev[p, 2:4].copy()
-        if self._seen_k is not None and self._seen_k.size == self.plan.N:
-            seen = self._seen_k[p] == k - 1
-            vp[seen] = self._seen_v[p[seen]]
-        ap = a_plan[p]
-        ad = (q[cand, 2:4] - vp) / dt - ap
-        speed = np.sqrt(vp[:, 0] ** 2 + vp[:, 1] ** 2)
-        den = np.maximum(speed, 1e-9)
-        brakes = ((ad[:, 0] * vp[:, 0] + ad[:, 1] * vp[:, 1]) / den < -th + slack) & (speed > th * dt - slack)
-        if not np.any(brakes):
+        # braking_scan itself, as one row sensing every vehicle, on copies of its memory (it records what it saw)
+        n_part = self.plan.N
+        has_seen = self._seen_k is not None and self._seen_k.size == n_part
+        seen_v = self._seen_v.copy() if has_seen else np.zeros((n_part, 2))
+        seen_k = self._seen_k.copy() if has_seen else np.full(n_part, -1, dtype=np.int64)
+        idx, shifted = braking_scan(np.zeros(cand.size, dtype=np.int64), _kernel_arg(p, np.int64),
+                                    _kernel_arg(q[cand], np.float64), np.zeros(cand.size, dtype=np.bool_), 1, seen_v,
+                                    seen_k, _kernel_arg(prev, np.float64), True, _kernel_arg(a_plan, np.float64), True,
+                                    np.zeros((0, 2)), False, int(k), float(dt), float(th))
+        if idx.size == 0:
             return out
-        cand, p, vp, ad, den = cand[brakes], p[brakes], vp[brakes], ad[brakes], den[brakes]
-        qc = q[cand]
-        shifted = qc + np.concatenate([0.5 * dt * dt * ad, dt * ad], axis=1)
-        far = self._beyond_plan(shifted, bp.plan_mismatch_m - 1e-6, p)
-        cand, p, vp, ad, den, qc = cand[far], p[far], vp[far], ad[far], den[far], qc[far]
+        cand, p = cand[idx], p[idx]
+        far = self._beyond_plan(shifted, bp.plan_mismatch_m, p)
+        cand, p, shifted = cand[far], p[far], shifted[far]
         plan_prev = self._plan_s_hist.get(k - 1)
         if cand.size == 0 or not bp.plan_mismatch_brake_expected or plan_prev is None:
             out[cand] = True
             return out
         # the neighbour's deviation at the previous sample, as _brakes_beyond_tracking estimates it, and g
-        u = vp / den[:, None]
-        p_prev = qc[:, 0:2] - 0.5 * dt * (qc[:, 2:4] + vp)
-        e = self._leash(np.concatenate([p_prev, vp], axis=1) - plan_prev[p])
-        c3 = self.preset.cost.c3
-        Jv = self._feature_grad_v(e)                                     # (k, M, 2)
-        g = -(Jv[:, :, 0] * u[:, 0:1] + Jv[:, :, 1] * u[:, 1:2]) / (2.0 * c3)   # a_fb . u = g . w
-        A = (ad[:, 0] * vp[:, 0] + ad[:, 1] * vp[:, 1]) / den            # (meas - a_plan) . u
+        meas, v_prev, e = self._prev_deviation(q[cand], shifted, p, a_plan, plan_prev)
+        u = v_prev / np.maximum(np.linalg.norm(v_prev, axis=1), 1e-9)[:, None]
+        Jv = self._feature_grad_v(self._leash(e))                        # (k, M, 2)
+        g = -(Jv[:, :, 0] * u[:, 0:1] + Jv[:, :, 1] * u[:, 1:2]) / (2.0 * self.preset.cost.c3)   # a_fb . u = g . w
+        r = meas - a_plan[p]
+        A = r[:, 0] * u[:, 0] + r[:, 1] * u[:, 1]                        # (meas - a_plan) . u
         # the rows that sense each candidate
         pairs = cKDTree(states[cand, 0:2]).sparse_distance_matrix(cKDTree(states[:, 0:2]), bp.sensor_range_m + 1e-6,
                                                                    output_type="ndarray")
@@ -671,18 +673,11 @@ class DefaultMFGController(_DefaultBase):
     def _box_grad_bound(self) -> float:
         """max over the leash box of |e_v / scale_v^2| |J_v(e)|_F (J_v: the sigma_H features' velocity gradient), bounded
         monomial by monomial (|e_x|, |e_y| <= e_pos_max_m, |e_vx|, |e_vy| <= e_vel_max_m_s)."""
-        if getattr(self, "_box_bound", None) is None:
+        if self._box_bound is None:
+            # every monomial's derivative is largest in magnitude at the box's corner (all components at their caps)
             tp = self.preset.tracking
-            E = np.asarray(self.sigma_H.exponents, dtype=np.int64)
             scale = np.asarray(self.sigma_H.scale, dtype=float)
-            b = np.array([tp.e_pos_max_m, tp.e_pos_max_m, tp.e_vel_max_m_s, tp.e_vel_max_m_s]) / scale
-            J = np.zeros((E.shape[0], 2))
-            for m in range(E.shape[0]):
-                for c, d in enumerate((2, 3)):
-                    if E[m, d] > 0:
-                        ex = E[m].copy()
-                        ex[d] -= 1
-                        J[m, c] = E[m, d] / scale[d] * np.prod(b ** ex)
+            J = self._feature_grad_v(np.array([[tp.e_pos_max_m, tp.e_pos_max_m, tp.e_vel_max_m_s, tp.e_vel_max_m_s]]))
             self._box_bound = float(tp.e_vel_max_m_s / np.min(scale[2:4] ** 2) * np.sqrt(np.sum(J * J)))
         return self._box_bound
 
@@ -1164,15 +1159,11 @@ class DefaultMFGController(_DefaultBase):
         that was faster than its particle brakes back by command (eq. 8's nearly deadbeat answer to the last period's
         wind); a vehicle in Hold brakes whatever its deviation was. docs/default_controller.md, "The braking test subtracts the
         neighbour's own tracking"."""
-        p, dt = self.preset, self.preset.dt_s
+        p = self.preset
         prev = self._plan_s_hist.get(step - 1)
         if prev is None:
             return np.ones(idx.size, dtype=bool)
-        q = sn.states[idx]
-        meas = (shifted[:, 2:4] - q[:, 2:4]) / dt + a_plan[part]         # the measured velocity change / dt
-        v_prev = q[:, 2:4] - dt * meas
-        p_prev = q[:, 0:2] - 0.5 * dt * (q[:, 2:4] + v_prev)
-        e = np.concatenate([p_prev, v_prev], axis=1) - prev[part]
+        meas, v_prev, e = self._prev_deviation(sn.states[idx], shifted, part, a_plan, prev)
         a_exp = a_plan[part] + self._eq8_fb(e, sn.owner[idx])
         r = meas - a_exp
         speed = np.maximum(np.linalg.norm(v_prev, axis=1), 1e-9)
@@ -1183,6 +1174,17 @@ class DefaultMFGController(_DefaultBase):
             r = r - own_ref[sn.owner[idx]]
             out &= (r[:, 0] * v_prev[:, 0] + r[:, 1] * v_prev[:, 1]) / speed < -th
         return out
+
+    def _prev_deviation(self, q: np.ndarray, shifted: np.ndarray, part: np.ndarray, a_plan: np.ndarray,
+                        plan_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """From sensed states q (k, 4) and braking_scan's shifted states (one more period of the braking): (the
+        measured velocity change / dt (k, 2), the previous velocity (k, 2), the deviation from the own particle
+        ``part`` at the previous sample (k, 4), plan_prev the particles' states then)."""
+        dt = self.preset.dt_s
+        meas = (shifted[:, 2:4] - q[:, 2:4]) / dt + a_plan[part]         # the measured velocity change / dt
+        v_prev = q[:, 2:4] - dt * meas
+        p_prev = q[:, 0:2] - 0.5 * dt * (q[:, 2:4] + v_prev)
+        return meas, v_prev, np.concatenate([p_prev, v_prev], axis=1) - plan_prev[part]
 
     def _leash(self, err: np.ndarray) -> np.ndarray:
         """A tracking error (k, 4) as the value model sees it: position and velocity parts each capped in norm
