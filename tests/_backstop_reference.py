@@ -174,11 +174,13 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
     a_nom_r = a_nom[rows]
     best = np.full(rows.size, np.inf)
+    best_h = np.full(rows.size, np.inf)
     t_seg = t[1:]
     for c in range(cand_fixed.shape[0] + 1):
         a1 = a_nom_r if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
         phase2 = (a_nom_r, np.zeros_like(a_nom_r), -a1, a1) if bp.escape_two_phase else (a1,)
         pen_best = np.full(rows.size, np.inf)
+        h_best = np.full(rows.size, np.inf)
         for a2 in phase2:
             disp = alpha[None, :, None] * a1[e_row][:, None, :] + beta[None, :, None] * a2[e_row][:, None, :]   # (m', T + 1, 2)
             dmin, k = _segment_min(rel - disp)
@@ -193,7 +195,13 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
             pen = wgt * urg * np.maximum(0.0, clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0) ** 2
             pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
                                  (0.5 * t[-1] ** 2 * a_max), 0.0)
-            pen_best = np.minimum(pen_best, np.bincount(e_row, pen, rows.size))
+            pen_r = np.bincount(e_row, pen, rows.size)
+            # (nineteenth session) safety first: the hard violation H, compared before the cost
+            y = np.maximum(0.0, bp.escape_hard_fraction * clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0)
+            h_r = np.bincount(e_row, y * y, rows.size) if bp.escape_hard_fraction > 0 else np.zeros(rows.size)
+            take = (h_r < h_best) | ((h_r == h_best) & (pen_r < pen_best))
+            h_best = np.where(take, h_r, h_best)
+            pen_best = np.where(take, pen_r, pen_best)
         da_c = a1 - a_nom_r
         along = np.einsum("rd,rd->r", da_c, v_hat)
         effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
@@ -202,8 +210,9 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
             # (ninth session) the side the row passes a hovering vehicle on (escape_side_commit)
             side_r = side_pref[rows]
             cost = cost + bp.escape_side_commit * np.maximum(0.0, -(side_r[:, 0] * a1[:, 0] + side_r[:, 1] * a1[:, 1])) / a_max
-        better = cost < best
+        better = (h_best < best_h) | ((h_best == best_h) & (cost < best))
         best = np.where(better, cost, best)
+        best_h = np.where(better, h_best, best_h)
         a_out[rows[better]] = a1[better]
     return cap_norm(a_out, a_max), active
 

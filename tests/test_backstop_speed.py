@@ -52,6 +52,7 @@ def _params(rng: np.random.Generator) -> BackstopParams:
         kw["escape_planned_weight"] = float(rng.choice([1.0, 0.5]))
         kw["escape_trigger_coast"] = bool(rng.random() < 0.5)
         kw["escape_side_over_keep_right"] = bool(rng.random() < 0.5)
+        kw["escape_hard_fraction"] = float(rng.choice([0.0, 0.5, 0.8]))
     return dataclasses.replace(BackstopParams(), **kw)
 
 

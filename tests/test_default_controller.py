@@ -472,10 +472,12 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     # the case exercises the rule: without it, that pair (with the rules that came after it off as well - the yield,
     # the gap push and the crowded push's flow reach: the flight without the lost rule alone keeps 0.185 m, through
     # what the yields changed before, and with the yield off but the two others on it has no pair either; nor with the
-    # eleventh session's trigger by the spacing now and lane side over keep-right, which are off by default)
+    # eleventh session's trigger by the spacing now and lane side over keep-right, which are off by default; nor the
+    # nineteenth session's safety-first escape, which alone keeps it clear)
     off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                         escape_yield=False, gap_push=False,
-                                                                        push_flow_reach=False),
+                                                                        push_flow_reach=False,
+                                                                        escape_hard_fraction=0.0),
                                  detour=dataclasses.replace(DEFAULT.detour, enabled=False)))
     assert [10, 548] in off["collided_pairs_list"], off["collided_pairs_list"]
 

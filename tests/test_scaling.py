@@ -248,7 +248,7 @@ def test_mfg_sensed_cutoff_widens_only_the_rows_within_the_sensor_range_of_a_veh
 
 
 @pytest.mark.parametrize("scenario,n,seed,extra", [("swap4", 144, 3, {"gust": sim.GustParams()}),
-                                                   ("crossing", 100, 4, {"fail_vehicle": 10, "fail_at_s": 20.0}),
+                                                   ("crossing", 100, 7, {"fail_vehicle": 10, "fail_at_s": 20.0}),
                                                    ("paper", 100, 4, {"fail_vehicle": 10, "fail_at_s": 20.0}),
                                                    ("dense", 144, 2, {"gust": sim.GustParams()}),
                                                    ("circle", 100, 4, {"fail_vehicle": 3, "fail_at_s": 12.0})])

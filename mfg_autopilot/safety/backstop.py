@@ -118,7 +118,7 @@ def _escape_args(bp: BackstopParams, commit_s: float) -> tuple:
             float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
             bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
             g.keep_right_den, float(bp.escape_effort), float(bp.escape_lateral_cost), g.a_max2, float(bp.escape_side_commit),
-            bool(bp.escape_trigger_coast), bool(bp.escape_side_over_keep_right))
+            bool(bp.escape_trigger_coast), bool(bp.escape_side_over_keep_right), float(bp.escape_hard_fraction))
 
 
 def _directions(k: int) -> np.ndarray:

@@ -95,7 +95,7 @@ def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
 @njit(cache=True)
 def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed, a_nom_r,
                       v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den, effort_w, lateral_cost,
-                      a_max2, side_r, side_w, a_max):
+                      a_max2, side_r, side_w, a_max, hard_fraction):
     """The escape's choice of first-phase command per active row: (a_1 (r, 2), chosen (r,) bool).
 
     rel (m', T + 1, 2): constant-velocity tracks relative to the own coasting vehicle; rel_b (m_b, T + 1, 2) the
@@ -105,7 +105,11 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     a_nom_r, v_hat (r, 2). keep_right_den = 0.5 t[-1]^2 a_max, a_max2 = a_max^2 (as the numpy code computes them).
     side_r (r, 2): the side the row passes a hovering vehicle on (a unit vector across its track, or 0);
     a candidate against it costs side_w max(0, -side_r . a_1) / a_max (guidance.controller._escape_side).
-    chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom)."""
+    chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom).
+    hard_fraction > 0: safety first - each (a_1, a_2) also gets the hard violation H = sum_e max(0, hard_fraction
+    clear_e / max(dmin_e, d_floor) - 1)^2, and (H, cost) are compared lexicographically, over a_2 and over a_1: a
+    candidate whose best second phase keeps every entry at least hard_fraction x its clearance away beats every one
+    that does not, whatever their cost; among those that cannot, the least violation wins (0: H = 0, as before)."""
     m = rel.shape[0]
     r = a_nom_r.shape[0]
     T1 = rel.shape[1]
@@ -118,6 +122,9 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     a2 = np.empty((r, 2))
     pen_best = np.empty(r)
     acc = np.empty(r)
+    h_best = np.empty(r)
+    hacc = np.empty(r)
+    best_h = np.full(r, np.inf)
     for c in range(n_c):
         for i in range(r):
             if c == 0:
@@ -127,6 +134,7 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 a1[i, 0] = cand_fixed[c - 1, 0]
                 a1[i, 1] = cand_fixed[c - 1, 1]
             pen_best[i] = np.inf
+            h_best[i] = np.inf
         for ph in range(n_p):
             for i in range(r):
                 if n_p == 1 or ph == 3:
@@ -142,6 +150,7 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                     a2[i, 0] = -a1[i, 0]
                     a2[i, 1] = -a1[i, 1]
                 acc[i] = 0.0
+                hacc[i] = 0.0
             for e in range(m):
                 i = e_row[e]
                 dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
@@ -155,6 +164,9 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 urg = tau_min_s / _max(t_seg[k], tau_min_s) if urgency else 1.0
                 x = _max(0.0, clear[e] / _max(dmin, d_floor_m) - 1.0)
                 pen = wgt[e] * urg * (x * x)
+                if hard_fraction > 0.0:
+                    y = _max(0.0, hard_fraction * clear[e] / _max(dmin, d_floor_m) - 1.0)
+                    hacc[i] += y * y
                 if conflict[e]:
                     dx = alpha[T1 - 1] * a1[i, 0] + beta[T1 - 1] * a2[i, 0]
                     dy = alpha[T1 - 1] * a1[i, 1] + beta[T1 - 1] * a2[i, 1]
@@ -163,7 +175,10 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                     pen = pen + 0.0
                 acc[i] += pen
             for i in range(r):
-                pen_best[i] = _min(pen_best[i], acc[i])
+                # lexicographic (H, pen): with hard_fraction = 0 every H is 0 and this is min(pen_best, acc)
+                if hacc[i] < h_best[i] or (hacc[i] == h_best[i] and acc[i] < pen_best[i]):
+                    h_best[i] = hacc[i]
+                    pen_best[i] = acc[i]
         for i in range(r):
             dax = a1[i, 0] - a_nom_r[i, 0]
             day = a1[i, 1] - a_nom_r[i, 1]
@@ -171,7 +186,8 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
             effort = (along * along + lateral_cost * ((dax * dax + day * day) - along * along)) / a_max2
             cost = pen_best[i] + effort_w * effort
             cost = cost + side_w * _max(0.0, -(side_r[i, 0] * a1[i, 0] + side_r[i, 1] * a1[i, 1])) / a_max
-            if cost < best[i]:
+            if h_best[i] < best_h[i] or (h_best[i] == best_h[i] and cost < best[i]):
+                best_h[i] = h_best[i]
                 best[i] = cost
                 a_out[i, 0] = a1[i, 0]
                 a_out[i, 1] = a1[i, 1]
@@ -208,7 +224,7 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
                 keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, trigger_coast, side_over_keep_right,
-                side_pref, hover):
+                hard_fraction, side_pref, hover):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
     least one threat. Same operations, in the same order, as the numpy code (module docstring). hover (m,) bool: the
     hovering threat entries; with trigger_coast a row is also active if coasting (a = 0 over the horizon) brings such an
@@ -336,7 +352,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             v_hat[k, 1] = 0.0
     a_best, chosen = escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed,
                                        a_nom_r, v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den,
-                                       effort_w, lateral_cost, a_max2, side_r, side_w, a_max)
+                                       effort_w, lateral_cost, a_max2, side_r, side_w, a_max, hard_fraction)
     for k in range(r):
         if chosen[k]:
             a_out[rows[k], 0] = a_best[k, 0]
