@@ -174,13 +174,14 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     v_hat = np.where((vn > bp.u_noise_m_s)[:, None], vo / np.maximum(vn, 1e-12)[:, None], 0.0)
     a_nom_r = a_nom[rows]
     best = np.full(rows.size, np.inf)
-    best_h = np.full(rows.size, np.inf)
+    best_safe = np.full(rows.size, np.inf)          # (nineteenth session) the cheapest safe candidate's cost
+    a_safe = np.zeros((rows.size, 2))
     t_seg = t[1:]
     for c in range(cand_fixed.shape[0] + 1):
         a1 = a_nom_r if c == 0 else np.broadcast_to(cand_fixed[c - 1], (rows.size, 2))
         phase2 = (a_nom_r, np.zeros_like(a_nom_r), -a1, a1) if bp.escape_two_phase else (a1,)
         pen_best = np.full(rows.size, np.inf)
-        h_best = np.full(rows.size, np.inf)
+        pen_safe = np.full(rows.size, np.inf)
         for a2 in phase2:
             disp = alpha[None, :, None] * a1[e_row][:, None, :] + beta[None, :, None] * a2[e_row][:, None, :]   # (m', T + 1, 2)
             dmin, k = _segment_min(rel - disp)
@@ -196,24 +197,32 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
             pen = pen + np.where(conflict, bp.escape_keep_right * np.maximum(0.0, np.einsum("ed,ed->e", left, disp[:, -1, :])) /
                                  (0.5 * t[-1] ** 2 * a_max), 0.0)
             pen_r = np.bincount(e_row, pen, rows.size)
-            # (nineteenth session) safety first: the hard violation H, compared before the cost
-            y = np.maximum(0.0, bp.escape_hard_fraction * clear / np.maximum(dmin, bp.escape_d_floor_m) - 1.0)
-            h_r = np.bincount(e_row, y * y, rows.size) if bp.escape_hard_fraction > 0 else np.zeros(rows.size)
-            take = (h_r < h_best) | ((h_r == h_best) & (pen_r < pen_best))
-            h_best = np.where(take, h_r, h_best)
-            pen_best = np.where(take, pen_r, pen_best)
+            pen_best = np.minimum(pen_best, pen_r)
+            if bp.escape_hard_fraction > 0:
+                # (nineteenth session) safe: every entry predicted at least hard_fraction x its clearance away
+                unsafe = np.bincount(e_row, dmin < bp.escape_hard_fraction * clear, rows.size) > 0
+                pen_safe = np.where(unsafe, pen_safe, np.minimum(pen_safe, pen_r))
         da_c = a1 - a_nom_r
         along = np.einsum("rd,rd->r", da_c, v_hat)
         effort = (along ** 2 + bp.escape_lateral_cost * (np.einsum("rd,rd->r", da_c, da_c) - along ** 2)) / a_max ** 2
-        cost = pen_best + bp.escape_effort * effort
+        eff = bp.escape_effort * effort
+        cost = pen_best + eff
+        cost_s = pen_safe + eff
         if side_pref is not None:
             # (ninth session) the side the row passes a hovering vehicle on (escape_side_commit)
             side_r = side_pref[rows]
-            cost = cost + bp.escape_side_commit * np.maximum(0.0, -(side_r[:, 0] * a1[:, 0] + side_r[:, 1] * a1[:, 1])) / a_max
-        better = (h_best < best_h) | ((h_best == best_h) & (cost < best))
+            side_c = bp.escape_side_commit * np.maximum(0.0, -(side_r[:, 0] * a1[:, 0] + side_r[:, 1] * a1[:, 1])) / a_max
+            cost = cost + side_c
+            cost_s = cost_s + side_c
+        better = cost < best
         best = np.where(better, cost, best)
-        best_h = np.where(better, h_best, best_h)
         a_out[rows[better]] = a1[better]
+        take = np.isfinite(pen_safe) & (cost_s < best_safe)
+        best_safe = np.where(take, cost_s, best_safe)
+        a_safe[take] = a1[take]
+    # a row with a safe candidate takes the cheapest of those
+    has = np.isfinite(best_safe)
+    a_out[rows[has]] = a_safe[has]
     return cap_norm(a_out, a_max), active
 
 

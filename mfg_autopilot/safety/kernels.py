@@ -106,10 +106,11 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     side_r (r, 2): the side the row passes a hovering vehicle on (a unit vector across its track, or 0);
     a candidate against it costs side_w max(0, -side_r . a_1) / a_max (guidance.controller._escape_side).
     chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom).
-    hard_fraction > 0: safety first - each (a_1, a_2) also gets the hard violation H = sum_e max(0, hard_fraction
-    clear_e / max(dmin_e, d_floor) - 1)^2, and (H, cost) are compared lexicographically, over a_2 and over a_1: a
-    candidate whose best second phase keeps every entry at least hard_fraction x its clearance away beats every one
-    that does not, whatever their cost; among those that cannot, the least violation wins (0: H = 0, as before)."""
+    hard_fraction > 0: safety first - an (a_1, a_2) is *safe* if every entry's predicted closest approach is at least
+    hard_fraction x its clearance. If some a_1 has a safe a_2, the row takes the cheapest such a_1, its cost taken over
+    its safe second phases only; if none has, the cheapest a_1 by the cost alone, as with hard_fraction = 0 (a least
+    violation rule instead - every a_1 ranked by the violation first - carried UAVs across a crowded crossing: measured,
+    docs/default_controller.md)."""
     m = rel.shape[0]
     r = a_nom_r.shape[0]
     T1 = rel.shape[1]
@@ -122,9 +123,11 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     a2 = np.empty((r, 2))
     pen_best = np.empty(r)
     acc = np.empty(r)
-    h_best = np.empty(r)
-    hacc = np.empty(r)
-    best_h = np.full(r, np.inf)
+    pen_safe = np.empty(r)
+    safe = np.empty(r, dtype=np.bool_)
+    best_safe = np.full(r, np.inf)
+    a_safe = np.empty((r, 2))
+    any_safe = np.zeros(r, dtype=np.bool_)
     for c in range(n_c):
         for i in range(r):
             if c == 0:
@@ -134,7 +137,7 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 a1[i, 0] = cand_fixed[c - 1, 0]
                 a1[i, 1] = cand_fixed[c - 1, 1]
             pen_best[i] = np.inf
-            h_best[i] = np.inf
+            pen_safe[i] = np.inf
         for ph in range(n_p):
             for i in range(r):
                 if n_p == 1 or ph == 3:
@@ -150,7 +153,7 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                     a2[i, 0] = -a1[i, 0]
                     a2[i, 1] = -a1[i, 1]
                 acc[i] = 0.0
-                hacc[i] = 0.0
+                safe[i] = True
             for e in range(m):
                 i = e_row[e]
                 dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
@@ -164,9 +167,8 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 urg = tau_min_s / _max(t_seg[k], tau_min_s) if urgency else 1.0
                 x = _max(0.0, clear[e] / _max(dmin, d_floor_m) - 1.0)
                 pen = wgt[e] * urg * (x * x)
-                if hard_fraction > 0.0:
-                    y = _max(0.0, hard_fraction * clear[e] / _max(dmin, d_floor_m) - 1.0)
-                    hacc[i] += y * y
+                if hard_fraction > 0.0 and dmin < hard_fraction * clear[e]:
+                    safe[i] = False
                 if conflict[e]:
                     dx = alpha[T1 - 1] * a1[i, 0] + beta[T1 - 1] * a2[i, 0]
                     dy = alpha[T1 - 1] * a1[i, 1] + beta[T1 - 1] * a2[i, 1]
@@ -175,23 +177,35 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                     pen = pen + 0.0
                 acc[i] += pen
             for i in range(r):
-                # lexicographic (H, pen): with hard_fraction = 0 every H is 0 and this is min(pen_best, acc)
-                if hacc[i] < h_best[i] or (hacc[i] == h_best[i] and acc[i] < pen_best[i]):
-                    h_best[i] = hacc[i]
-                    pen_best[i] = acc[i]
+                pen_best[i] = _min(pen_best[i], acc[i])
+                if hard_fraction > 0.0 and safe[i]:
+                    pen_safe[i] = _min(pen_safe[i], acc[i])
         for i in range(r):
             dax = a1[i, 0] - a_nom_r[i, 0]
             day = a1[i, 1] - a_nom_r[i, 1]
             along = dax * v_hat[i, 0] + day * v_hat[i, 1]
             effort = (along * along + lateral_cost * ((dax * dax + day * day) - along * along)) / a_max2
+            side_c = side_w * _max(0.0, -(side_r[i, 0] * a1[i, 0] + side_r[i, 1] * a1[i, 1])) / a_max
             cost = pen_best[i] + effort_w * effort
-            cost = cost + side_w * _max(0.0, -(side_r[i, 0] * a1[i, 0] + side_r[i, 1] * a1[i, 1])) / a_max
-            if h_best[i] < best_h[i] or (h_best[i] == best_h[i] and cost < best[i]):
-                best_h[i] = h_best[i]
+            cost = cost + side_c
+            if cost < best[i]:
                 best[i] = cost
                 a_out[i, 0] = a1[i, 0]
                 a_out[i, 1] = a1[i, 1]
                 chosen[i] = True
+            if pen_safe[i] < np.inf:
+                cost_s = pen_safe[i] + effort_w * effort
+                cost_s = cost_s + side_c
+                if cost_s < best_safe[i]:
+                    best_safe[i] = cost_s
+                    a_safe[i, 0] = a1[i, 0]
+                    a_safe[i, 1] = a1[i, 1]
+                    any_safe[i] = True
+    for i in range(r):
+        if any_safe[i]:
+            a_out[i, 0] = a_safe[i, 0]
+            a_out[i, 1] = a_safe[i, 1]
+            chosen[i] = True
     return a_out, chosen
 
 
