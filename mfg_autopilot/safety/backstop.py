@@ -155,7 +155,10 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     bp.escape_trigger_coast such an entry also activates its row if the own vehicle *coasting* (a = 0 over the horizon)
     would bring it below its trigger (the nominal command's momentary tracking correction, held for 2 s, predicts misses
     the UAV does not make); with bp.escape_side_over_keep_right it gets no keep-right term in a row with a side_pref (the
-    lane side decides which side it is passed on). Returns (command (n, 2), active (n,)).
+    lane side decides which side it is passed on). Safety first (bp.escape_hard_fraction, nineteenth session): if some
+    candidate has a second phase that keeps every sensed entry at least escape_hard_fraction x its clearance away, the
+    row takes the cheapest such candidate (its cost over those second phases); otherwise the cheapest by the cost alone.
+    Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
     active = np.zeros(n, dtype=bool)

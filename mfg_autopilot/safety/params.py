@@ -84,10 +84,10 @@ class BackstopParams:
     escape_lateral_cost: float = 1.5   # lateral (to the own velocity) deviations cost this x more than along-track (1.0 before: docs/default_controller.md, "Failed vehicle in a stream")
     escape_d_floor_m: float = 0.05     # the conflict cost (clear / max(d, this) - 1)^2 grows steeply as d -> 0
     escape_urgency: bool = True        # weight a conflict by tau_min / max(t of closest approach, tau_min)
-    # safety first (nineteenth session): a candidate whose best second phase keeps every sensed entry at least this x
-    # its clearance away beats every candidate that does not, whatever their cost; if none can, the least violation
-    # wins (backstop.escape_acc). 0 = off (cost alone, as before). Measured: circle N = 10,000 --gust seed 74, a UAV
-    # took a predicted 0.24 m approach at the horizon's end for 1.4 less effort and collided (docs/default_controller.md)
+    # safety first (nineteenth session): a candidate with a second phase that keeps every sensed entry at least this x
+    # its clearance away beats every candidate that has none, whatever their cost; if no candidate has one, the cost
+    # alone decides, as with 0 = off (backstop.escape_acc). Measured: circle N = 10,000 --gust seed 74, a UAV took a
+    # predicted 0.24 m approach at the horizon's end for 1.4 less effort and collided (docs/default_controller.md)
     escape_hard_fraction: float = 0.5
     escape_keep_right: float = 2.0     # cost of a full-authority escape to the left of a conflicting approach (both turn right)
     # MFG, against a vehicle off the plan that hovers (slower than hover_max_speed_m_s: failed in Hold, drifting in the
