@@ -127,7 +127,6 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     safe = np.empty(r, dtype=np.bool_)
     best_safe = np.full(r, np.inf)
     a_safe = np.empty((r, 2))
-    any_safe = np.zeros(r, dtype=np.bool_)
     for c in range(n_c):
         for i in range(r):
             if c == 0:
@@ -200,9 +199,8 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                     best_safe[i] = cost_s
                     a_safe[i, 0] = a1[i, 0]
                     a_safe[i, 1] = a1[i, 1]
-                    any_safe[i] = True
     for i in range(r):
-        if any_safe[i]:
+        if best_safe[i] < np.inf:         # some candidate had a safe second phase
             a_out[i, 0] = a_safe[i, 0]
             a_out[i, 1] = a_safe[i, 1]
             chosen[i] = True
