@@ -39,7 +39,7 @@ from mfg_autopilot.paper.meanfield import fit_initial_fpk_weights
 from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift, optimal_action
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
-from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
+from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, cbf_acc, escape_acc
 from mfg_autopilot.safety.kernels import braking_scan, distinct_dense, formation_sums, slot_claims
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
@@ -268,6 +268,7 @@ class _DefaultBase:
             planned &= ~off[sn.owner]
         da = backstop_acc(own, sn.states, sn.owner, bp, select=planned)
         esc = np.zeros(self.n, dtype=bool)
+        crowd_rows = np.zeros(0, dtype=np.int64)
         # a UAV off its own particle yields to a vehicle on its own that neither response covers (_yielding)
         yl = self._yielding(sn, planned | unplanned) if bp.escape and bp.escape_yield else np.zeros_like(unplanned)
         if np.any(unplanned) or np.any(yl):
@@ -310,7 +311,12 @@ class _DefaultBase:
                 threat = threat | gap | yl
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
                                         self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat)
-            if np.any(push):
+            if np.any(push) and bp.crowd_cbf:
+                # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
+                # summed push left UAVs that chased their particles through a blown crowd to cross each other
+                # (crossing --gust N = 137, 3 of 30 seeds collided; BackstopParams.crowd_cbf)
+                crowd_rows = np.flatnonzero(np.bincount(sn.owner[push], minlength=self.n))
+            elif np.any(push):
                 # with the escape's reach per entry: a crowded row (most of its neighbours blown off the plan) pushed
                 # with the large reach (0.6 / 0.8 m) against neighbours that move with the flow was shoved about in
                 # the 1.41 m lattice, fell behind the block and stalled in the stream (swap4 --gust N = 10,000 seed 7,
@@ -329,6 +335,10 @@ class _DefaultBase:
         a, act = apply_backstop(cap_norm(a_nom, a_max), da, a_max)
         if np.any(esc):
             a, act = np.where(esc[:, None], a_esc, a), act | esc
+        if crowd_rows.size:
+            # (a crowded row never escapes: threat, yield and gap entries all exclude crowded rows)
+            a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
+                                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max)
         self.backstop_active = act
         self.backstop_steps += act
         return a

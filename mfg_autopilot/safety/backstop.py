@@ -39,7 +39,7 @@ from mfg_autopilot.paper.model import cap_norm
 from mfg_autopilot.safety import kernels as backstop_kernels
 from mfg_autopilot.safety.params import BackstopParams
 
-__all__ = ["backstop_acc", "apply_backstop", "escape_acc", "warm_up"]
+__all__ = ["backstop_acc", "apply_backstop", "escape_acc", "cbf_acc", "warm_up"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams,
@@ -178,6 +178,51 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     return cap_norm(a_out, bp.a_max_m_s2), active
 
 
+@functools.lru_cache(maxsize=1)
+def _cbf_disc() -> np.ndarray:
+    """The reciprocal CBF filter's sampled candidates on the unit disc: the centre and 24 directions at 4 radii."""
+    th = np.arange(24) * (2.0 * np.pi / 24.0)
+    ring = np.stack([np.cos(th), np.sin(th)], axis=1)
+    return np.ascontiguousarray(np.concatenate([np.zeros((1, 2))] + [r * ring for r in (0.25, 0.5, 0.75, 1.0)]))
+
+
+def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, rows: np.ndarray,
+            bp: BackstopParams, safe_m: float, a_max_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Reciprocal control-barrier safety filter with acceleration limits (Wang, Ames, Egerstedt, "Safety barrier
+    certificates for collision-free multirobot systems", IEEE T-RO 2017), for the bank rows ``rows``.
+
+    Per sensed vehicle j of row i (dp = r_i - r_j, dv = v_i - v_j, from the sensor; d = |dp|, p = dp / d, the opening
+    speed rdot = p . dv), the barrier
+
+        h_ij = sqrt(4 alpha (d - D_s)) + rdot    (alpha = crowd_cbf_alpha_m_s2, D_s = safe_m)
+
+    is >= 0 while the pair, both braking at alpha, can stop closing before they are D_s apart. Keeping
+    dh/dt >= -gamma h^3 is linear in the accelerations, p . (a_i - a_j) >= B_ij with
+
+        B_ij = -gamma h^3 - |dv|^2 / d + rdot^2 / d - 2 alpha rdot / sqrt(4 alpha (d - D_s)),
+
+    and each vehicle takes its share of it (crowd_cbf_share = 1/2: reciprocal; no communication): p . a_i >= B_ij / 2.
+    The command is the one nearest a_nom with |a| <= a_max_m_s2 that meets every constraint of the row (at most
+    crowd_cbf_max_constraints, the most demanding; a constraint with B / 2 <= -a_max holds for every command), or, if
+    none does, the one that misses the most violated constraint least. Solved exactly over the candidates where a 2-D
+    optimum lies (a_nom's projection on each constraint line, the lines' crossings with the disc and with each other)
+    plus a sampled disc (``_cbf_disc``), in one compiled call (``backstop_kernels.cbf_rows``).
+
+    own (n, 4), a_nom (n, 2) (already capped), sensed_states (m, 4) owned by bank rows owner (m,); rows (r,) int.
+    Returns (commands (r, 2), active (r,): the command differs from a_nom)."""
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    owner = np.asarray(owner, dtype=np.int64)
+    order = np.argsort(owner, kind="stable").astype(np.int64)
+    sorted_owner = owner[order]
+    starts = np.searchsorted(sorted_owner, rows, side="left").astype(np.int64)
+    ends = np.searchsorted(sorted_owner, rows, side="right").astype(np.int64)
+    return backstop_kernels.cbf_rows(np.ascontiguousarray(own, dtype=float), np.ascontiguousarray(a_nom, dtype=float),
+                                     np.ascontiguousarray(sensed_states, dtype=float), order, starts, ends, rows,
+                                     float(a_max_m_s2), float(bp.crowd_cbf_alpha_m_s2), float(bp.crowd_cbf_gamma),
+                                     float(safe_m), float(bp.crowd_cbf_share), int(bp.crowd_cbf_max_constraints),
+                                     _cbf_disc())
+
+
 def warm_up() -> None:
     """Load (or, on a cold cache, compile) the kernels, so that the first backstop step does not pay for it.
     Through this module's public wrappers, with cases that reach every kernel (an escape
@@ -193,6 +238,8 @@ def warm_up() -> None:
                np.array([0.8, 0.5]), bp, 0.5)
     da = backstop_acc(own, np.array([[0.3, 0.05, 3.0, 0.0]]), np.array([0]), bp)
     apply_backstop(a_nom, da, 2.0)
+    # the crowd's barrier filter, acting (a vehicle 1 m ahead, closing)
+    cbf_acc(own, a_nom, sensed, np.array([0, 0]), np.array([0]), bp, 0.3, 2.0)
     # the MFG tracking's formation mean (guidance.controller._formation_error), with its call's argument types
     i64 = np.array([0, 0], dtype=np.int64)
     backstop_kernels.slot_claims(i64, sensed, own, np.ones(1, dtype=np.bool_), 1.0, 1.0)

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["half_plane_acc", "half_plane_filter", "escape_rows", "escape_candidates", "orca_rows", "orca_select",
-           "slot_claims", "formation_sums", "braking_scan", "distinct_dense"]
+           "slot_claims", "formation_sums", "braking_scan", "distinct_dense", "cbf_rows"]
 
 
 @njit(cache=True)
@@ -887,3 +887,142 @@ def distinct_dense(q, ids, size):
     for e in range(m):
         inv[e] = rank[ids[e]]
     return first, inv, True
+
+
+@njit(cache=True)
+def _cbf_violation(cx, cy, phx, phy, rhs, K):
+    """max_k (rhs_k - ph_k . c): how far the command c misses the most violated constraint (<= 0: all hold)."""
+    v = -np.inf
+    for k in range(K):
+        w = rhs[k] - (phx[k] * cx + phy[k] * cy)
+        if w > v:
+            v = w
+    return v
+
+
+@njit(cache=True)
+def _cbf_consider(cx, cy, ax, ay, phx, phy, rhs, K, lim2, best):
+    """Keep the candidate c in best (violation, squared distance to a_nom, c) if it is within the disc and misses the
+    most violated constraint by less (to 1e-9), or by as little and is nearer a_nom."""
+    if not cx * cx + cy * cy <= lim2:
+        return
+    v = _cbf_violation(cx, cy, phx, phy, rhs, K)
+    if v < 1e-9:
+        v = 0.0
+    d = (cx - ax) * (cx - ax) + (cy - ay) * (cy - ay)
+    if v < best[0] - 1e-9 or (v <= best[0] + 1e-9 and d < best[1]):
+        best[0] = v
+        best[1] = d
+        best[2] = cx
+        best[3] = cy
+
+
+@njit(cache=True)
+def _cbf_circle(nx, ny, c, a_max, ax, ay, phx, phy, rhs, K, lim2, best):
+    """Consider the two points where the line n . a = c (|n| = 1) crosses the circle |a| = a_max."""
+    t2 = a_max * a_max - c * c
+    if t2 < 0.0:
+        return
+    t = math.sqrt(t2)
+    _cbf_consider(c * nx - t * ny, c * ny + t * nx, ax, ay, phx, phy, rhs, K, lim2, best)
+    _cbf_consider(c * nx + t * ny, c * ny - t * nx, ax, ay, phx, phy, rhs, K, lim2, best)
+
+
+@njit(cache=True)
+def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha, gamma, ds, share, k_max, disc):
+    """backstop.cbf_acc (its docstring): the filtered command per row of ``rows`` and whether it differs from a_nom.
+    order / starts / ends: the sensed entries of row rows[q] are order[starts[q]:ends[q]]. disc (S, 2): unit-disc samples."""
+    r = rows.shape[0]
+    out = np.empty((r, 2))
+    active = np.zeros(r, dtype=np.bool_)
+    phx = np.empty(k_max)
+    phy = np.empty(k_max)
+    rhs = np.empty(k_max)
+    best = np.empty(4)                  # violation, squared distance to a_nom, command
+    for q in range(r):
+        i = rows[q]
+        ax = a_nom[i, 0]
+        ay = a_nom[i, 1]
+        out[q, 0] = ax
+        out[q, 1] = ay
+        # the constraints that can bind (rhs > -a_max: ph . a >= rhs holds for every |a| <= a_max otherwise),
+        # the k_max most demanding of them (largest rhs) if there are more
+        K = 0
+        for p in range(starts[q], ends[q]):
+            e = order[p]
+            dx = own[i, 0] - sensed_states[e, 0]
+            dy = own[i, 1] - sensed_states[e, 1]
+            vx = own[i, 2] - sensed_states[e, 2]
+            vy = own[i, 3] - sensed_states[e, 3]
+            dist = math.sqrt(dx * dx + dy * dy)
+            if dist < 1e-6:
+                dist = 1e-6
+            nx = dx / dist
+            ny = dy / dist
+            rdot = nx * vx + ny * vy
+            gap = dist - ds
+            if gap < 1e-6:
+                gap = 1e-6
+            root = math.sqrt(4.0 * alpha * gap)
+            h = root + rdot
+            b = -gamma * h * h * h - (vx * vx + vy * vy) / dist + rdot * rdot / dist - 2.0 * alpha * rdot / root
+            b = share * b
+            if not b > -a_max:
+                continue
+            if K < k_max:
+                phx[K] = nx
+                phy[K] = ny
+                rhs[K] = b
+                K += 1
+            else:
+                lo = 0
+                for k in range(1, K):
+                    if rhs[k] < rhs[lo]:
+                        lo = k
+                if b > rhs[lo]:
+                    phx[lo] = nx
+                    phy[lo] = ny
+                    rhs[lo] = b
+        if K == 0 or _cbf_violation(ax, ay, phx, phy, rhs, K) <= 0.0:
+            continue
+        active[q] = True
+        lim2 = a_max * a_max * (1.0 + 1e-9)
+        best[0] = np.inf
+        best[1] = np.inf
+        # candidates, where a 2-D optimum lies: for the nearest command meeting every constraint, a_nom's projection on
+        # each constraint line, the lines' crossings with the disc |a| = a_max and with each other; for the least
+        # violating one when none does (min over the disc of max_k rhs_k - ph_k . a), a_max ph_k, the disc crossings
+        # of the lines where two violations are equal, and the points where three are; then a sampled disc
+        for k in range(K):
+            w = rhs[k] - (phx[k] * ax + phy[k] * ay)
+            if w < 0.0:
+                w = 0.0
+            _cbf_consider(ax + w * phx[k], ay + w * phy[k], ax, ay, phx, phy, rhs, K, lim2, best)
+            _cbf_circle(phx[k], phy[k], rhs[k], a_max, ax, ay, phx, phy, rhs, K, lim2, best)
+            _cbf_consider(a_max * phx[k], a_max * phy[k], ax, ay, phx, phy, rhs, K, lim2, best)
+            for l in range(k + 1, K):
+                det = phx[k] * phy[l] - phy[k] * phx[l]
+                if abs(det) > 1e-12:
+                    _cbf_consider((rhs[k] * phy[l] - phy[k] * rhs[l]) / det, (phx[k] * rhs[l] - rhs[k] * phx[l]) / det,
+                                  ax, ay, phx, phy, rhs, K, lim2, best)
+                ex = phx[k] - phx[l]
+                ey = phy[k] - phy[l]
+                en = math.sqrt(ex * ex + ey * ey)
+                if en > 1e-12:
+                    _cbf_circle(ex / en, ey / en, (rhs[k] - rhs[l]) / en, a_max, ax, ay, phx, phy, rhs, K, lim2, best)
+                    for m in range(l + 1, K):
+                        fx = phx[k] - phx[m]
+                        fy = phy[k] - phy[m]
+                        det3 = ex * fy - ey * fx
+                        if abs(det3) > 1e-12:
+                            g1 = rhs[k] - rhs[l]
+                            g2 = rhs[k] - rhs[m]
+                            _cbf_consider((g1 * fy - ey * g2) / det3, (ex * g2 - g1 * fx) / det3, ax, ay, phx, phy, rhs, K,
+                                          lim2, best)
+        for c in range(disc.shape[0]):
+            _cbf_consider(a_max * disc[c, 0], a_max * disc[c, 1], ax, ay, phx, phy, rhs, K, lim2, best)
+        bx = best[2]
+        by = best[3]
+        out[q, 0] = bx
+        out[q, 1] = by
+    return out, active

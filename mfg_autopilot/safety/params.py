@@ -147,6 +147,18 @@ class BackstopParams:
     gap_push_min_spacing_m: float = 1.0
     gap_push_near_lost: bool = True
     escape_two_phase: bool = True      # candidate held for one control period, then the best of {a_nom, 0, -a_1, a_1}
+    # MFG: a crowded row (escape_max_unplanned_fraction: most of what it senses is off the plan, a gust has blown the
+    # swarm about) gets the reciprocal control-barrier filter of backstop.cbf_acc over every sensed vehicle instead of
+    # the summed half-plane push (which left a crowd of UAVs chasing their particles to cross each other: crossing
+    # --gust N = 137, 3 of 30 seeds collided). Barrier of Wang, Ames, Egerstedt (2017) with each vehicle's braking
+    # authority crowd_cbf_alpha_m_s2, decay crowd_cbf_gamma, safe distance crowd_cbf_safe_fraction x the plan's spacing,
+    # each vehicle taking crowd_cbf_share of every constraint. docs/default_controller.md, "The crowd's barrier filter"
+    crowd_cbf: bool = True
+    crowd_cbf_alpha_m_s2: float = 1.0
+    crowd_cbf_gamma: float = 1.0
+    crowd_cbf_safe_fraction: float = 0.25
+    crowd_cbf_share: float = 0.5
+    crowd_cbf_max_constraints: int = 16
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
 

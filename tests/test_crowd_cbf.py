@@ -1,0 +1,166 @@
+"""The crowd's reciprocal barrier filter (backstop.cbf_acc; BackstopParams.crowd_cbf): its constraint is the barrier's
+derivative, its solution is the constrained optimum, it keeps a pair apart, and it keeps the crowd of crossing --gust
+N = 137 from colliding (3 of 30 seeds collided with the summed half-plane push it replaces)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from mfg_autopilot.guidance.params import DEFAULT
+from mfg_autopilot.safety.backstop import cbf_acc
+from mfg_autopilot.safety.params import BackstopParams
+from mfg_swarm.scenarios import make_scenario
+from mfg_swarm.sim import GustParams, SimConfig, simulate
+
+BP = BackstopParams()
+A_MAX = 2.0
+
+
+def _barrier(own, other, alpha, ds):
+    """h = sqrt(4 alpha (d - D_s)) + p . dv, written out again (not the kernel's code)."""
+    dp, dv = own[0:2] - other[0:2], own[2:4] - other[2:4]
+    d = math.hypot(*dp)
+    return math.sqrt(4 * alpha * (d - ds)) + float(dp @ dv) / d
+
+
+def _constraint(own, other, alpha, gamma, ds):
+    """(p, B): p . (a_i - a_j) >= B keeps dh/dt >= -gamma h^3 (Wang, Ames, Egerstedt 2017, eq. for double integrators)."""
+    dp, dv = own[0:2] - other[0:2], own[2:4] - other[2:4]
+    d = math.hypot(*dp)
+    p = dp / d
+    rdot = float(p @ dv)
+    root = math.sqrt(4 * alpha * (d - ds))
+    h = root + rdot
+    return p, -gamma * h ** 3 - float(dv @ dv) / d + rdot ** 2 / d - 2 * alpha * rdot / root
+
+
+def test_the_constraint_is_the_barrier_derivative():
+    # dh/dt by a central difference of the pair moved with constant accelerations equals
+    # p . (a_i - a_j) - (B + gamma h^3): the constraint p . da >= B is exactly dh/dt >= -gamma h^3
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        own = np.concatenate([rng.uniform(-1, 1, 2), rng.uniform(-3, 3, 2)])
+        other = np.concatenate([rng.uniform(-1, 1, 2) + [3.0, 0.0], rng.uniform(-3, 3, 2)])
+        ai, aj = rng.uniform(-2, 2, 2), rng.uniform(-2, 2, 2)
+        alpha, gamma, ds = 1.0, 0.7, 0.3
+
+        def at(t):
+            move = lambda s, a: np.concatenate([s[0:2] + s[2:4] * t + 0.5 * a * t * t, s[2:4] + a * t])
+            return _barrier(move(own, ai), move(other, aj), alpha, ds)
+
+        eps = 1e-6
+        dh = (at(eps) - at(-eps)) / (2 * eps)
+        p, B = _constraint(own, other, alpha, gamma, ds)
+        h = _barrier(own, other, alpha, ds)
+        assert dh == pytest.approx(float(p @ (ai - aj)) - B - gamma * h ** 3, rel=1e-5, abs=1e-5)
+
+
+def _row_case(rng, k):
+    own = np.array([[0.0, 0.0, *rng.uniform(-3, 3, 2)]])
+    ang = rng.uniform(0, 2 * np.pi, k)
+    r = rng.uniform(0.5, 2.5, k)
+    sensed = np.column_stack([r * np.cos(ang), r * np.sin(ang), rng.uniform(-3, 3, (k, 2))])
+    a_nom = rng.uniform(-1.4, 1.4, (1, 2))
+    return own, a_nom, sensed
+
+
+def test_the_filter_returns_the_nominal_command_when_it_is_safe_and_else_the_constrained_optimum():
+    # reference: every constraint written out again, and the nearest feasible command on a fine polar grid
+    rng = np.random.default_rng(11)
+    ds, share = 0.3, BP.crowd_cbf_share
+    r_g, t_g = np.meshgrid(np.linspace(0, A_MAX, 201), np.linspace(0, 2 * np.pi, 721), indexing="ij")
+    grid = np.column_stack([(r_g * np.cos(t_g)).ravel(), (r_g * np.sin(t_g)).ravel()])
+    seen = {"kept": 0, "optimum": 0, "least": 0}
+    for _ in range(120):
+        own, a_nom, sensed = _row_case(rng, int(rng.integers(1, 5)))
+        a, act = cbf_acc(own, a_nom, sensed, np.zeros(len(sensed), dtype=int), np.array([0]), BP, ds, A_MAX)
+        cons = [_constraint(own[0], s, BP.crowd_cbf_alpha_m_s2, BP.crowd_cbf_gamma, ds) for s in sensed]
+        P = np.array([c[0] for c in cons])
+        b = share * np.array([c[1] for c in cons])
+        slack = P @ a_nom[0] - b
+        if np.all(slack >= 0):
+            assert not act[0] and np.array_equal(a[0], a_nom[0])
+            seen["kept"] += 1
+            continue
+        assert act[0] and np.linalg.norm(a[0]) <= A_MAX * (1 + 1e-9)
+        feasible = np.all(grid @ P.T - b >= 0, axis=1)
+        if np.all(P @ a[0] - b >= -1e-9):
+            # no feasible grid command is nearer to a_nom (up to the grid's resolution)
+            assert feasible.any()
+            best = np.min(np.linalg.norm(grid[feasible] - a_nom[0], axis=1))
+            assert np.linalg.norm(a[0] - a_nom[0]) <= best + 1e-9
+            seen["optimum"] += 1
+        else:
+            # nothing meets every constraint: the command misses the most violated one by no more than any grid command
+            assert not feasible.any()
+            worst = np.max(b - P @ a[0])
+            assert worst <= np.min(np.max(b[None, :] - grid @ P.T, axis=1)) + 1e-9
+            seen["least"] += 1
+    assert min(seen.values()) >= 5, seen          # every branch is exercised
+
+
+def _fly_pair(v_closing, offset_m, dt_s, T_s=6.0, ds=0.3):
+    """Two vehicles whose nominal commands drive them into each other at a_max, both filtered; the smallest distance."""
+    s = np.array([[0.0, 0.0, v_closing / 2, 0.0], [4.0, offset_m, -v_closing / 2, 0.0]])
+    dmin = np.inf
+    for _ in range(int(T_s / dt_s)):
+        d = s[1, 0:2] - s[0, 0:2]
+        a_nom = np.array([d, -d]) / np.linalg.norm(d) * A_MAX
+        a = np.empty((2, 2))
+        for i in (0, 1):
+            a[i], _ = cbf_acc(s[i:i + 1], a_nom[i:i + 1], s[1 - i:2 - i], np.zeros(1, dtype=int), np.array([0]), BP, ds, A_MAX)
+        # exact motion over the step, and the smallest distance along it (relative motion is a parabola: sample finely)
+        for t in np.linspace(0, dt_s, 21):
+            pos = s[:, 0:2] + s[:, 2:4] * t + 0.5 * a * t * t
+            dmin = min(dmin, float(np.linalg.norm(pos[1] - pos[0])))
+        s[:, 0:2] += s[:, 2:4] * dt_s + 0.5 * a * dt_s ** 2
+        s[:, 2:4] += a * dt_s
+    return dmin
+
+
+@pytest.mark.parametrize("v_closing", [1.0, 2.0, 3.0])
+@pytest.mark.parametrize("offset_m", [0.0, 0.4])
+def test_a_filtered_pair_never_closes_below_the_safe_distance(v_closing, offset_m):
+    # the barrier's guarantee: the pair starts inside the safe set (h >= 0: both braking at alpha stop before D_s)
+    # and each meets its half of the constraint, so h stays >= 0 and the distance >= D_s - in continuous time. At
+    # 100 Hz the pair keeps D_s to within 1 %; at the 0.5 s control period the held command overshoots the barrier,
+    # and the pair still keeps half of it (the flight below is where the period is tested)
+    ds = 0.3
+    own, other = np.array([0.0, 0.0, v_closing / 2, 0.0]), np.array([4.0, offset_m, -v_closing / 2, 0.0])
+    assert _barrier(own, other, BP.crowd_cbf_alpha_m_s2, ds) >= 0
+    assert _fly_pair(v_closing, offset_m, 0.01, ds=ds) >= 0.99 * ds
+    assert _fly_pair(v_closing, offset_m, 0.5, ds=ds) >= 0.5 * ds
+
+
+def test_without_the_filter_the_nominal_commands_collide():
+    # the pair test is not vacuous: unfiltered, the commands above drive the pair together
+    s = np.array([[0.0, 0.0, 1.0, 0.0], [4.0, 0.0, -1.0, 0.0]])
+    dmin = np.inf
+    for _ in range(600):
+        d = s[1, 0:2] - s[0, 0:2]
+        dmin = min(dmin, float(np.linalg.norm(d)))
+        a = np.array([d, -d]) / max(np.linalg.norm(d), 1e-9) * A_MAX
+        s[:, 0:2] += s[:, 2:4] * 0.01 + 0.5 * a * 1e-4
+        s[:, 2:4] += a * 0.01
+    assert dmin < 0.1
+
+
+@pytest.mark.parametrize("seed", [120, 123])
+def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
+    # crossing --gust N = 137: the gust (20-25 s) blows a group just as it departs (~21 s); nearly every UAV falls 2-5 m
+    # behind its particle and chases it at a_max, so their rows are crowded (most sensed vehicles off the plan). With the
+    # summed half-plane push these two seeds (of 30 flown, 3 collided) had 1 collided pair each (0.027 m, 0.077 m); held
+    # out: N = 213 seed 95 (1 pair, 0.015 m) was found with the filter in place, not tuned on
+    def fly(bp):
+        return simulate(SimConfig(scenario=make_scenario("crossing", 137), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
+                                  seed=seed, steps=120, gust=GustParams()), progress=False)[1]
+    m = fly(DEFAULT.backstop)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
+    assert m["safety_interventions"] > 0
+    off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf=False))
+    assert off["collision_pairs"] >= 1
