@@ -224,10 +224,15 @@ def test_a_gust_that_blows_everyone_alike_does_not_trigger_the_unplanned_respons
     no_cm = dataclasses.replace(interacting, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False,
                                                                        escape_max_unplanned_fraction=1.0))
     assert backstop_rows(gust, no_cm).any()
-    # ... unless, as by default, a row that senses mostly off-plan vehicles falls back to the half-plane push,
-    # which leaves these 0.7 m passes alone)
-    no_cm_crowd = dataclasses.replace(interacting, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False))
+    # ... unless a row that senses mostly off-plan vehicles falls back to the half-plane push, which leaves these
+    # 0.7 m passes alone; the crowd's barrier filter, which replaces that push by default since the twentieth session,
+    # does not: the groups pass through each other head-on, faster than a pair braking at 1 m/s^2 could stop, and it
+    # brakes every row. Only the common-mode check, first above, keeps a uniform gust from making rows crowded)
+    no_cm_crowd = dataclasses.replace(interacting, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False,
+                                                                                crowd_cbf=False))
     assert not backstop_rows(gust, no_cm_crowd).any()
+    no_cm_cbf = dataclasses.replace(interacting, backstop=dataclasses.replace(DEFAULT.backstop, common_mode=False))
+    assert backstop_rows(gust, no_cm_cbf).all()
     # when instead one vehicle stops (vehicle 3, group A's front row: vehicle 0 flies 1.41 m behind it in its
     # lane) while the others fly the plan, the one behind reacts
     def one_stops(x):
@@ -473,11 +478,13 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     # the gap push and the crowded push's flow reach: the flight without the lost rule alone keeps 0.185 m, through
     # what the yields changed before, and with the yield off but the two others on it has no pair either; nor with the
     # eleventh session's trigger by the spacing now and lane side over keep-right, which are off by default; nor the
-    # nineteenth session's safety-first escape, which alone keeps it clear)
+    # nineteenth session's safety-first escape, which alone keeps it clear; nor the twentieth's barrier filter for
+    # crowded rows: with it on and every rule above off, the UAVs settling into the slots around the hovering vehicle
+    # collide among themselves instead)
     off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                         escape_yield=False, gap_push=False,
                                                                         push_flow_reach=False,
-                                                                        escape_hard_fraction=0.0),
+                                                                        escape_hard_fraction=0.0, crowd_cbf=False),
                                  detour=dataclasses.replace(DEFAULT.detour, enabled=False)))
     assert [10, 548] in off["collided_pairs_list"], off["collided_pairs_list"]
 
