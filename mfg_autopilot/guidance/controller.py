@@ -337,11 +337,8 @@ class _DefaultBase:
             a, act = np.where(esc[:, None], a_esc, a), act | esc
         if crowd_rows.size:
             # (a crowded row never escapes: threat, yield and gap entries all exclude crowded rows)
-            # a hovering vehicle (failed in Hold, or parked) does not take its half of a constraint: the row takes all
-            slow = sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2
-            share = np.where(slow, 1.0, bp.crowd_cbf_share)
             a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
-                                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max, share)
+                                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max)
         self.backstop_active = act
         self.backstop_steps += act
         return a
