@@ -153,8 +153,9 @@ def test_without_the_filter_the_nominal_commands_collide():
 def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     # crossing --gust N = 137: the gust (20-25 s) blows a group just as it departs (~21 s); nearly every UAV falls 2-5 m
     # behind its particle and chases it at a_max, so their rows are crowded (most sensed vehicles off the plan). With the
-    # summed half-plane push these two seeds (of 30 flown, 3 collided) had 1 collided pair each (0.027 m, 0.077 m); held
-    # out: N = 213 seed 95 (1 pair, 0.015 m) was found with the filter in place, not tuned on
+    # summed half-plane push these two seeds (of 30 flown, 3 collided) had 1 collided pair each (0.027 m, 0.077 m).
+    # Elsewhere (docs/benchmarks.md, twentieth round): N = 213 seed 95, 1 pair (0.015 m) with the push, 0.384 m with the
+    # filter, whose constants were not tuned on any of these flights
     def fly(bp):
         return simulate(SimConfig(scenario=make_scenario("crossing", 137), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
                                   seed=seed, steps=120, gust=GustParams()), progress=False)[1]

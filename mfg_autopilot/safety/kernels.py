@@ -15,6 +15,9 @@ contraction into fused multiply-adds, no reassociation). Single-threaded; compil
 cached on disk (``cache=True``); :func:`warm_up` loads or compiles it before a control loop starts.
 
 Shapes as in ``escape_acc``: m' sensed entries of the active rows, T + 1 samples, r active rows.
+
+:func:`cbf_rows` (the crowd's barrier filter, ``backstop.cbf_acc``) replaced no numpy code: it is checked against its
+constraints written out again and against the optimum on a fine grid (``tests/test_crowd_cbf.py``).
 """
 
 from __future__ import annotations
