@@ -165,3 +165,11 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     assert m["safety_interventions"] > 0
     off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf=False))
     assert off["collision_pairs"] >= 1
+
+
+@pytest.mark.parametrize("field,value", [("crowd_cbf_alpha_m_s2", 0.0), ("crowd_cbf_gamma", -1.0), ("crowd_cbf_safe_fraction", 1.0),
+                                         ("crowd_cbf_share", 0.0), ("crowd_cbf_max_constraints", 0),
+                                         ("crowd_cbf_alpha_m_s2", float("nan"))])
+def test_a_filter_parameter_out_of_range_is_refused_naming_it(field, value):
+    with pytest.raises(ValueError, match=field):
+        BackstopParams(**{field: value})

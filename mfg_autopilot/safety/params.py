@@ -166,6 +166,13 @@ class BackstopParams:
         if self.plan_mismatch_brake_common not in ("disturbance", "deviation"):
             raise ValueError("BackstopParams.plan_mismatch_brake_common must be 'disturbance' or 'deviation', got "
                              f"{self.plan_mismatch_brake_common!r}")
+        for name, ok, what in (("crowd_cbf_alpha_m_s2", self.crowd_cbf_alpha_m_s2 > 0, "> 0"),
+                               ("crowd_cbf_gamma", self.crowd_cbf_gamma >= 0, ">= 0"),
+                               ("crowd_cbf_safe_fraction", 0 <= self.crowd_cbf_safe_fraction < 1, "in [0, 1)"),
+                               ("crowd_cbf_share", 0 < self.crowd_cbf_share <= 1, "in (0, 1]"),
+                               ("crowd_cbf_max_constraints", self.crowd_cbf_max_constraints >= 1, ">= 1")):
+            if not ok:
+                raise ValueError(f"BackstopParams.{name} must be {what}, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
