@@ -173,3 +173,37 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
 def test_a_filter_parameter_out_of_range_is_refused_naming_it(field, value):
     with pytest.raises(ValueError, match=field):
         BackstopParams(**{field: value})
+
+
+def test_a_vehicle_failed_in_hold_inside_a_gust_gets_the_full_constraint():
+    # crossing --gust N = 300 seed 76 with vehicle 10 failing into Hold at 20.15 s, inside the gust: UAV 12's row is
+    # crowded and the failed vehicle, hovering where the plan flies at 4 m/s, takes no half of the constraint. With the
+    # half (the reciprocal share) UAV 12 braked 1.4 m/s^2 at 0.57 m closing at 1.4 m/s and met it (0.078 m, 1 pair)
+    def fly(bp):
+        return simulate(SimConfig(scenario=make_scenario("crossing", 300), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
+                                  seed=76, steps=60, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+    m = fly(DEFAULT.backstop)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf_hover_full_share=False))
+    assert [10, 12] in off["collided_pairs_list"], off["collided_pairs_list"]
+
+
+def _fly_at_obstacle(share, v0=3.0, dt_s=0.01, T_s=5.0, ds=0.3):
+    """One vehicle driven at a_max into a vehicle that hovers and does not filter; the smallest distance."""
+    s = np.array([[0.0, 0.0, v0, 0.0]])
+    obstacle = np.array([[4.0, 0.0, 0.0, 0.0]])
+    dmin = np.inf
+    for _ in range(int(T_s / dt_s)):
+        d = obstacle[0, 0:2] - s[0, 0:2]
+        dmin = min(dmin, float(np.linalg.norm(d)))
+        a_nom = (d / np.linalg.norm(d) * A_MAX)[None]
+        a, _ = cbf_acc(s, a_nom, obstacle, np.zeros(1, dtype=int), np.array([0]), BP, ds, A_MAX, np.array([share]))
+        s[0, 0:2] += s[0, 2:4] * dt_s + 0.5 * a[0] * dt_s ** 2
+        s[0, 2:4] += a[0] * dt_s
+    return dmin
+
+
+def test_against_a_vehicle_that_takes_no_half_the_full_share_keeps_the_safe_distance():
+    # the barrier's forward invariance needs both halves; a hovering (failed) vehicle gives none, so the row takes all
+    assert _fly_at_obstacle(1.0) >= 0.99 * 0.3
+    assert _fly_at_obstacle(0.5) < 0.99 * 0.3          # with only its half it comes closer than D_s

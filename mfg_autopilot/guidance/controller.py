@@ -182,6 +182,28 @@ class _DefaultBase:
         the entries already off the plan; own (n, 4): the rows' own states."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
+    def _cbf_share(self, sn: Neighbours, rows: np.ndarray) -> np.ndarray | None:
+        """Each sensed entry's share of its barrier constraint (backstop.cbf_acc): crowd_cbf_share, but all of it (1)
+        for a vehicle that hovers (slower than hover_max_speed_m_s) where the plan flies (its nearest particle faster
+        than unplanned_flow_min_m_s): one failed into Hold in the stream, which takes no half. Not for a vehicle that is
+        slow where the plan is slow too (a group at its departure: measured, full shares there made the constraints
+        infeasible more often, crossing --gust N = 137 seed 118 0.262 -> 0.109 m)."""
+        bp = self.preset.backstop
+        plan = getattr(self, "plan", None)
+        if plan is None or not bp.crowd_cbf_hover_full_share:
+            return None
+        share = np.full(sn.states.shape[0], bp.crowd_cbf_share)
+        v2 = sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2
+        idx = np.flatnonzero(np.isin(sn.owner, rows) & (v2 < bp.hover_max_speed_m_s ** 2))
+        if idx.size == 0:
+            return share
+        if self._flow_tree is None or self._flow_tree[0] != plan.k:
+            self._flow_tree = (plan.k, cKDTree(plan.states[:, 0:2]))
+        _, j = self._flow_tree[1].query(sn.states[idx, 0:2], k=1)
+        vp = plan.states[j, 2:4]
+        share[idx[vp[:, 0] ** 2 + vp[:, 1] ** 2 > bp.unplanned_flow_min_m_s ** 2]] = 1.0
+        return share
+
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
                          clear_m: float) -> tuple[np.ndarray, np.ndarray]:
         """(m,) the escape's trigger and clearance per sensed entry (read where ``unplanned``): trig_m, clear_m for
@@ -338,7 +360,8 @@ class _DefaultBase:
         if crowd_rows.size:
             # (a crowded row never escapes: threat, yield and gap entries all exclude crowded rows)
             a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
-                                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max)
+                                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max,
+                                                     self._cbf_share(sn, crowd_rows))
         self.backstop_active = act
         self.backstop_steps += act
         return a

@@ -187,7 +187,8 @@ def _cbf_disc() -> np.ndarray:
 
 
 def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, rows: np.ndarray,
-            bp: BackstopParams, safe_m: float, a_max_m_s2: float) -> tuple[np.ndarray, np.ndarray]:
+            bp: BackstopParams, safe_m: float, a_max_m_s2: float, share: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
     """Reciprocal control-barrier safety filter with acceleration limits (Wang, Ames, Egerstedt, "Safety barrier
     certificates for collision-free multirobot systems", IEEE T-RO 2017), for the bank rows ``rows``.
 
@@ -202,6 +203,7 @@ def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner
         B_ij = -gamma h^3 - |dv|^2 / d + rdot^2 / d - 2 alpha rdot / sqrt(4 alpha (d - D_s)),
 
     and each vehicle takes its share of it (crowd_cbf_share = 1/2: reciprocal; no communication): p . a_i >= B_ij / 2.
+    share (m,), optional, per entry instead (1 for a vehicle that does not take its half: one hovering in Hold).
     The command is the one nearest a_nom with |a| <= a_max_m_s2 that meets every constraint of the row (at most
     crowd_cbf_max_constraints, the most demanding; a constraint with B / 2 <= -a_max holds for every command), or, if
     none does, the one that misses the most violated constraint least. Solved exactly over the candidates where a 2-D
@@ -216,10 +218,11 @@ def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner
     sorted_owner = owner[order]
     starts = np.searchsorted(sorted_owner, rows, side="left").astype(np.int64)
     ends = np.searchsorted(sorted_owner, rows, side="right").astype(np.int64)
+    share = np.full(owner.shape[0], float(bp.crowd_cbf_share)) if share is None else np.ascontiguousarray(share, dtype=float)
     return backstop_kernels.cbf_rows(np.ascontiguousarray(own, dtype=float), np.ascontiguousarray(a_nom, dtype=float),
                                      np.ascontiguousarray(sensed_states, dtype=float), order, starts, ends, rows,
                                      float(a_max_m_s2), float(bp.crowd_cbf_alpha_m_s2), float(bp.crowd_cbf_gamma),
-                                     float(safe_m), float(bp.crowd_cbf_share), int(bp.crowd_cbf_max_constraints),
+                                     float(safe_m), share, int(bp.crowd_cbf_max_constraints),
                                      _cbf_disc())
 
 

@@ -934,7 +934,8 @@ def _cbf_circle(nx, ny, c, a_max, ax, ay, phx, phy, rhs, K, lim2, best):
 @njit(cache=True)
 def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha, gamma, ds, share, k_max, disc):
     """backstop.cbf_acc (its docstring): the filtered command per row of ``rows`` and whether it differs from a_nom.
-    order / starts / ends: the sensed entries of row rows[q] are order[starts[q]:ends[q]]. disc (S, 2): unit-disc samples."""
+    order / starts / ends: the sensed entries of row rows[q] are order[starts[q]:ends[q]]; share (m,): each entry's
+    share of its constraint; disc (S, 2): unit-disc samples."""
     r = rows.shape[0]
     out = np.empty((r, 2))
     active = np.zeros(r, dtype=np.bool_)
@@ -969,7 +970,7 @@ def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha,
             root = math.sqrt(4.0 * alpha * gap)
             h = root + rdot
             b = -gamma * h * h * h - (vx * vx + vy * vy) / dist + rdot * rdot / dist - 2.0 * alpha * rdot / root
-            b = share * b
+            b = share[e] * b
             if not b > -a_max:
                 continue
             if K < k_max:

@@ -158,6 +158,7 @@ class BackstopParams:
     crowd_cbf_gamma: float = 1.0
     crowd_cbf_safe_fraction: float = 0.25
     crowd_cbf_share: float = 0.5
+    crowd_cbf_hover_full_share: bool = True   # ... but all of it against a vehicle hovering in the plan's stream (_cbf_share)
     crowd_cbf_max_constraints: int = 16
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
