@@ -183,26 +183,9 @@ class _DefaultBase:
         return np.zeros(sn.states.shape[0], dtype=bool)
 
     def _cbf_share(self, sn: Neighbours, rows: np.ndarray) -> np.ndarray | None:
-        """Each sensed entry's share of its barrier constraint (backstop.cbf_acc): crowd_cbf_share, but all of it (1)
-        for a vehicle that hovers (slower than hover_max_speed_m_s) where the plan flies (its nearest particle faster
-        than unplanned_flow_min_m_s): one failed into Hold in the stream, which takes no half. Not for a vehicle that is
-        slow where the plan is slow too (a group at its departure: measured, full shares there made the constraints
-        infeasible more often, crossing --gust N = 137 seed 118 0.262 -> 0.109 m)."""
-        bp = self.preset.backstop
-        plan = getattr(self, "plan", None)
-        if plan is None or not bp.crowd_cbf_hover_full_share:
-            return None
-        share = np.full(sn.states.shape[0], bp.crowd_cbf_share)
-        v2 = sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2
-        idx = np.flatnonzero(np.isin(sn.owner, rows) & (v2 < bp.hover_max_speed_m_s ** 2))
-        if idx.size == 0:
-            return share
-        if self._flow_tree is None or self._flow_tree[0] != plan.k:
-            self._flow_tree = (plan.k, cKDTree(plan.states[:, 0:2]))
-        _, j = self._flow_tree[1].query(sn.states[idx, 0:2], k=1)
-        vp = plan.states[j, 2:4]
-        share[idx[vp[:, 0] ** 2 + vp[:, 1] ** 2 > bp.unplanned_flow_min_m_s ** 2]] = 1.0
-        return share
+        """(m,) each sensed entry's share of its barrier constraint (backstop.cbf_acc), or None: crowd_cbf_share for
+        every one (HJB_d; MFG gives all of it against a vehicle hovering in the plan's stream)."""
+        return None
 
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
                          clear_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1067,6 +1050,35 @@ class DefaultMFGController(_DefaultBase):
         hint = np.asarray(ids, dtype=np.int64) if ids is not None and len(ids) == sensed_states.shape[0] else None
         return self._beyond_plan(sensed_states, self.preset.backstop.plan_mismatch_m, hint)
 
+    def _particle_velocity_near(self, xy: np.ndarray) -> np.ndarray:
+        """(k, 2) the velocity of the plan particle nearest each point of xy (k, 2), by a k-d tree of the plan's
+        positions kept for the plan step."""
+        if self._flow_tree is None or self._flow_tree[0] != self.plan.k:
+            self._flow_tree = (self.plan.k, cKDTree(self.plan.states[:, 0:2]))
+        _, j = self._flow_tree[1].query(xy, k=1)
+        return self.plan.states[j, 2:4]
+
+    def _cbf_share(self, sn: Neighbours, rows: np.ndarray) -> np.ndarray | None:
+        """Each sensed entry's share of its barrier constraint (backstop.cbf_acc): crowd_cbf_share, but all of it (1)
+        for a vehicle that hovers (slower than hover_max_speed_m_s) where the plan flies (its nearest particle faster
+        than unplanned_flow_min_m_s): one failed into Hold in the stream, which takes no half. Not for a vehicle that is
+        slow where the plan is slow too (a group at its departure: measured, full shares there made the constraints
+        infeasible more often, crossing --gust N = 137 seed 118 0.262 -> 0.109 m). Only the entries of ``rows`` are
+        read."""
+        bp = self.preset.backstop
+        if self.plan is None or not bp.crowd_cbf_hover_full_share:
+            return None
+        share = np.full(sn.states.shape[0], bp.crowd_cbf_share)
+        in_rows = np.zeros(self.n, dtype=bool)
+        in_rows[rows] = True
+        v2 = sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2
+        idx = np.flatnonzero(in_rows[sn.owner] & (v2 < bp.hover_max_speed_m_s ** 2))
+        if idx.size == 0:
+            return share
+        vp = self._particle_velocity_near(sn.states[idx, 0:2])
+        share[idx[vp[:, 0] ** 2 + vp[:, 1] ** 2 > bp.unplanned_flow_min_m_s ** 2]] = 1.0
+        return share
+
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
                          clear_m: float) -> tuple[np.ndarray, np.ndarray]:
         """The escape's trigger and clearance per sensed entry. An off-plan vehicle that still moves with the plan's
@@ -1082,10 +1094,7 @@ class DefaultMFGController(_DefaultBase):
         idx = np.flatnonzero(unplanned)
         if idx.size == 0 or bp.unplanned_flow_m_s <= 0 or self.plan is None:
             return trig, clear
-        if self._flow_tree is None or self._flow_tree[0] != self.plan.k:
-            self._flow_tree = (self.plan.k, cKDTree(self.plan.states[:, 0:2]))
-        _, j = self._flow_tree[1].query(states[idx, 0:2], k=1)
-        vp = self.plan.states[j, 2:4]
+        vp = self._particle_velocity_near(states[idx, 0:2])
         dv = states[idx, 2:4] - vp
         flow = ((vp[:, 0] ** 2 + vp[:, 1] ** 2 > bp.unplanned_flow_min_m_s ** 2)
                 & (dv[:, 0] ** 2 + dv[:, 1] ** 2 < bp.unplanned_flow_m_s ** 2))
