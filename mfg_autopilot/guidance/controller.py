@@ -27,6 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from mfg_autopilot.guidance.detour import detour_offset, detour_onset, detour_side
+from mfg_autopilot.guidance.disturbance import disturbance_residual_m_s2, shrink_m_s2
 from mfg_autopilot.guidance.params import DefaultPreset
 from mfg_autopilot.guidance.planner import MeanFieldPlan, combine_priority, goal_acc, repulsion_from_neighbours
 from mfg_autopilot.guidance.group_plan import GroupPlan, group_plan_for
@@ -409,6 +410,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_tree, self._flow_tree, self._side_mem = None, None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev, self._own_a_prev = None, None, None, None
+        self._dob = None
         self._plan_s_hist, self._cutoff_hist = {}, {}
         # a new flight: nothing of an earlier one (a controller reused for another t = 0 exchange decides as a new one;
         # tests/test_detour.py): the detour's memory, the tracked reference, the learnt value model
@@ -1171,7 +1173,7 @@ class DefaultMFGController(_DefaultBase):
             if bp.plan_mismatch_brake_common == "disturbance" and self._own_a_prev is not None \
                     and self._own_a_prev[0] == step - 1:
                 c = self.preset.cost
-                own_ref = (v - v0) / self.preset.dt_s - (self._own_a_prev[1] - c.c0_per_s * (0.5 * (v + v0) - c.v_o[None, :]))
+                own_ref = disturbance_residual_m_s2(v, v0, self._own_a_prev[1], self.preset.dt_s, c.c0_per_s, c.v_o)
             else:
                 own_ref = (v - v0) / self.preset.dt_s - a_plan[self.own_index]
         idx, shifted = braking_scan(_kernel_arg(sn.owner, np.int64), _kernel_arg(part, np.int64), _kernel_arg(sn.states, np.float64),
@@ -1391,9 +1393,30 @@ class DefaultMFGController(_DefaultBase):
         if tp.feedback and tp.relative_priority:
             a_nom = self._relative_priority(a_plan, a_nom, obs)
         a = self._backstop(own, a_nom, obs)
+        a = self._reject_disturbance(own, a, obs.step)
         self._own_a_prev = (obs.step, np.array(a, dtype=float))     # the braking test's common mode, next step
         self._pending = fpk_args or ()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
+
+    def _reject_disturbance(self, own: np.ndarray, a: np.ndarray, step: int) -> np.ndarray:
+        """The command sent for the acceleration ``a`` (n, 2) the rows chose: a less each row's observed disturbance
+        beyond the deadband (guidance/disturbance.py; TrackingParams.disturbance_feedforward), capped at acc_max. The
+        observer's state (the step, the own velocities, the commands sent, the estimate) is kept for the next step;
+        a gap in the steps starts it again from zero."""
+        tp, p = self.preset.tracking, self.preset
+        if not tp.disturbance_feedforward:
+            return a
+        v = np.array(own[:, 2:4], dtype=float)
+        d_hat = np.zeros((self.n, 2))
+        if self._dob is not None and self._dob[0] == step - 1:
+            _, v0, a0, d0 = self._dob
+            resid = disturbance_residual_m_s2(v, v0, a0, p.dt_s, p.cost.c0_per_s, p.cost.v_o)
+            lam = tp.disturbance_smoothing
+            d_hat = lam * d0 + (1.0 - lam) * resid
+        ff = shrink_m_s2(d_hat, tp.disturbance_deadband_m_s2)
+        cmd = cap_norm(a - ff, p.learner.acc_max_m_s2)
+        self._dob = (step, v, np.array(cmd, dtype=float), d_hat)
+        return cmd
 
     def finish(self) -> None:
         """The rest of the step act() began: the FPK model's update at the own state (read from

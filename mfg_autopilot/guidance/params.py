@@ -83,6 +83,21 @@ class TrackingParams:
     formation_radius_spacings: float = 3.0  # sensed neighbours whose plan particle is within this x the plan spacing
     formation_outlier_m: float = 1.0       # ... and whose deviation from the plan is within this of the own one
                                            # (|de_r|^2 + (plan_mismatch_s |de_v|)^2, the backstop's plan metric)
+    # MFG: the own disturbance observer's feedforward (guidance/disturbance.py; not from the paper; off): the command
+    # sent is the chosen acceleration less the acceleration eq. 9 does not explain in the own telemetry (smoothed; only
+    # beyond a deadband above the modelled wind noise). Measured (docs/benchmarks.md, twenty-first round): it halves the
+    # tracking error in a gust, but a UAV that a strong gust saturates drifts while its neighbours now hold their
+    # particles, and --gust flights came closer (all seven families, N = 300, seeds 74-75: smallest 0.33 -> 0.20 m);
+    # a failure inside a gust collided less often (5 -> 2 of 42 runs). Off until that trade is resolved
+    disturbance_feedforward: bool = False
+    disturbance_smoothing: float = 0.5      # lam: d_hat = lam d_hat + (1 - lam) residual
+    disturbance_deadband_m_s2: float = 0.3  # ~3.7 x the smoothed residual's std per axis under V_o alone (0.08 m/s^2)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.disturbance_smoothing < 1.0:
+            raise ValueError(f"TrackingParams.disturbance_smoothing must be in [0, 1), got {self.disturbance_smoothing!r}")
+        if not self.disturbance_deadband_m_s2 >= 0.0:
+            raise ValueError(f"TrackingParams.disturbance_deadband_m_s2 must be >= 0, got {self.disturbance_deadband_m_s2!r}")
 
 
 @dataclass(frozen=True)
