@@ -207,3 +207,19 @@ def test_against_a_vehicle_that_takes_no_half_the_full_share_keeps_the_safe_dist
     # the barrier's forward invariance needs both halves; a hovering (failed) vehicle gives none, so the row takes all
     assert _fly_at_obstacle(1.0) >= 0.99 * 0.3
     assert _fly_at_obstacle(0.5) < 0.99 * 0.3          # with only its half it comes closer than D_s
+
+
+def test_every_other_row_takes_its_half_as_the_last_layer():
+    # crossing --gust N = 1,000 seed 77 with vehicle 10 failing into Hold at 20.15 s, inside the gust: UAVs 63 and 87,
+    # beside the failed vehicle, closed at 1.7 m/s while 63's row switched between the escape, the crowd's filter and
+    # the push, and 87's was not crowded - the crowd's constraint assumed 87 took the other half; it took none (0.012 m).
+    # With the filter as the last layer of every non-escaping row (BackstopParams.cbf_last_layer) the flight keeps
+    # 0.2 m (measured 0.230 m over the whole 400-step flight)
+    def fly(bp):
+        return simulate(SimConfig(scenario=make_scenario("crossing", 1000), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
+                                  seed=77, steps=56, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+    m = fly(DEFAULT.backstop)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
+    off = fly(dataclasses.replace(DEFAULT.backstop, cbf_last_layer=False))
+    assert [63, 87] in off["collided_pairs_list"], off["collided_pairs_list"]

@@ -160,6 +160,9 @@ class BackstopParams:
     crowd_cbf_share: float = 0.5
     crowd_cbf_hover_full_share: bool = True   # ... but all of it against a vehicle hovering in the plan's stream (_cbf_share)
     crowd_cbf_max_constraints: int = 16
+    # ... and as the last layer of every other row that senses a vehicle and does not escape, over its command, against
+    # every sensed vehicle but one hovering off the plan (guidance.controller._backstop_rows; twenty-first session)
+    cbf_last_layer: bool = True
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
 
