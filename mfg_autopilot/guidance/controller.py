@@ -347,7 +347,8 @@ class _DefaultBase:
                                                      bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max,
                                                      self._cbf_share(sn, crowd_rows))
         if bp.crowd_cbf and bp.cbf_last_layer and sn.states.shape[0]:
-            # the same filter as the last layer of every other row that senses a vehicle off the plan (and not hovering)
+            # (an option, off: BackstopParams.cbf_last_layer) the same filter as the last layer of every other row that
+            # senses a vehicle off the plan (and not hovering)
             # and does not escape, over the command the responses above made, against every sensed vehicle, with the
             # reciprocal half (calm flights, where nothing is off the plan, are the same flights): a crowded row's constraint assumes its
             # neighbour takes the other half, and a neighbour that was not crowded took none (crossing --gust with a
