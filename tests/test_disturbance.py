@@ -3,11 +3,15 @@ model of eq. 9, and its deadband lets the modelled wind noise through untouched.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from mfg_autopilot.guidance.disturbance import disturbance_residual_m_s2, shrink_m_s2
 from mfg_autopilot.guidance.params import DEFAULT
+from mfg_swarm.scenarios import make_scenario
+from mfg_swarm.sim import GustParams, SimConfig, simulate
 from mock_vehicle.plant import WindParams, euler_maruyama_step
 
 DT_S, SUB_S = 0.5, 0.1          # the control period and the simulator's physics sub-step
@@ -80,7 +84,6 @@ def test_shrink_drops_the_deadband_and_keeps_the_direction():
 
 
 def test_a_smoothing_or_deadband_out_of_range_is_refused_naming_it():
-    import dataclasses
     with pytest.raises(ValueError, match="disturbance_smoothing"):
         dataclasses.replace(DEFAULT.tracking, disturbance_smoothing=1.0)
     with pytest.raises(ValueError, match="disturbance_deadband_m_s2"):
@@ -91,11 +94,6 @@ def test_the_feedforward_holds_the_vehicles_nearer_their_particles_in_a_gust():
     # paper N = 64 --gust (1 m/s^2 +- 50 %, 20-25 s), 60 steps: the largest tracking error of any UAV (metrics
     # "guarantee"), measured 3.45 m without the feedforward, 2.14 m with it; asserted: at most 3/4 of it. (It is off by
     # default: the same flight's smallest separation fell 1.04 -> 0.76 m; TrackingParams.disturbance_feedforward.)
-    import dataclasses
-
-    from mfg_swarm.scenarios import make_scenario
-    from mfg_swarm.sim import GustParams, SimConfig, simulate
-
     def fly(on):
         pre = dataclasses.replace(DEFAULT, tracking=dataclasses.replace(DEFAULT.tracking, disturbance_feedforward=on))
         return simulate(SimConfig(scenario=make_scenario("paper", 64), mode="mfg", preset=pre, seed=3, steps=60,

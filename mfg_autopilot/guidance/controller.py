@@ -346,15 +346,15 @@ class _DefaultBase:
             a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
                                                      bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max,
                                                      self._cbf_share(sn, crowd_rows))
-        if bp.crowd_cbf and bp.cbf_last_layer and sn.states.shape[0]:
+        if bp.crowd_cbf and bp.cbf_last_layer and np.any(unplanned):
             # (an option, off: BackstopParams.cbf_last_layer) the same filter as the last layer of every other row that
-            # senses a vehicle off the plan (and not hovering)
-            # and does not escape, over the command the responses above made, against every sensed vehicle, with the
-            # reciprocal half (calm flights, where nothing is off the plan, are the same flights): a crowded row's constraint assumes its
-            # neighbour takes the other half, and a neighbour that was not crowded took none (crossing --gust with a
-            # failure, N = 1,000 seed 77: UAVs 63 / 87 closed at 1.7 m/s while one switched between escape, filter
-            # and push). Not against a vehicle that hovers off the plan: passing it is the escape's (a swerve; the
-            # filter only brakes along the line of sight, and braking at it in a gust met it: paper N = 1,000 seed 76)
+            # senses a vehicle off the plan (not hovering) and does not escape, over the command the responses above
+            # made, against every sensed vehicle, with the reciprocal half (calm flights, where nothing is off the plan,
+            # are the same flights): a crowded row's constraint assumes its neighbour takes the other half, and a
+            # neighbour that was not crowded took none (crossing --gust with a failure, N = 1,000 seed 77: UAVs 63 / 87
+            # closed at 1.7 m/s while one switched between escape, filter and push). Not against a vehicle that hovers
+            # off the plan: passing it is the escape's (a swerve; the filter only brakes along the line of sight, and
+            # braking at it in a gust met it: paper N = 1,000 seed 76)
             hovering_off = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
             rest = (np.bincount(sn.owner[unplanned & ~hovering_off], minlength=self.n) > 0) & ~esc
             rest[crowd_rows] = False
