@@ -163,7 +163,11 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
     assert m["safety_interventions"] > 0
-    off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf=False))
+    # the filter alone (without the own disturbance in the backstop's predictions, BackstopParams.own_disturbance,
+    # which came later and also flies these two seeds without a pair) is what separates them from the push
+    alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False)
+    assert fly(alone)["collision_pairs"] == 0
+    off = fly(dataclasses.replace(alone, crowd_cbf=False))
     assert off["collision_pairs"] >= 1
 
 
@@ -184,7 +188,10 @@ def test_a_vehicle_failed_in_hold_inside_a_gust_gets_the_full_constraint():
                                   seed=76, steps=60, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
-    off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf_hover_full_share=False))
+    # the full share alone (without BackstopParams.own_disturbance, which came later and also flies it without a pair)
+    alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False)
+    assert fly(alone)["collision_pairs"] == 0
+    off = fly(dataclasses.replace(alone, crowd_cbf_hover_full_share=False))
     assert [10, 12] in off["collided_pairs_list"], off["collided_pairs_list"]
 
 
@@ -219,8 +226,11 @@ def test_every_other_row_takes_its_half_as_the_last_layer():
     def fly(bp):
         return simulate(SimConfig(scenario=make_scenario("crossing", 1000), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
                                   seed=77, steps=56, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
-    m = fly(dataclasses.replace(DEFAULT.backstop, cbf_last_layer=True))
+    # (without BackstopParams.own_disturbance, which came later and flies it without a pair by itself:
+    # tests/test_own_disturbance.py)
+    base = dataclasses.replace(DEFAULT.backstop, own_disturbance=False)
+    m = fly(dataclasses.replace(base, cbf_last_layer=True))
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
-    off = fly(DEFAULT.backstop)
+    off = fly(base)
     assert [63, 87] in off["collided_pairs_list"], off["collided_pairs_list"]

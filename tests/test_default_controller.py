@@ -742,9 +742,9 @@ def test_a_hovering_vehicle_off_the_plan_is_kept_clear_by_the_spacing_flown_now_
     import mfg_autopilot.guidance.controller as ctl
     seen = {}
 
-    def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, hover=None):
+    def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, hover=None, own_dist=None):
         seen.update(states=states, owner=owner, threat=threat, trig=trig, clear=clear, hover=hover)
-        return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, hover)
+        return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, hover, own_dist)
 
     monkeypatch.setattr(ctl, "escape_acc", spy)
     for now in (True, False):

@@ -115,6 +115,9 @@ class _DefaultBase:
         self.backstop_active = np.zeros(self.n, dtype=bool)
         self.backstop_steps = np.zeros(self.n, dtype=np.int64)
         self._own_err: np.ndarray | None = None     # MFG: each row's deviation from its plan particle, s - s_plan (n, 4)
+        # MFG: each row's own disturbance estimate this step (n, 2), guidance/disturbance.py; None before the observer has
+        # two samples (and in HJB_d)
+        self._own_dist: np.ndarray | None = None
         # MFG: the rows whose plan is deflected around a failed vehicle this step (mask (n,), its position (n, 2), the
         # onset (n,), the clearance, the side (n,)): _detour; None when no row senses one
         self._detour_state: tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray] | None = None
@@ -224,6 +227,9 @@ class _DefaultBase:
         bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
         if not bp.enabled:
             return cap_norm(a_nom, a_max)
+        # the own disturbance the escape and the barrier filter predict the own vehicle with (BackstopParams.own_disturbance)
+        od = (shrink_m_s2(self._own_dist, bp.own_disturbance_deadband_m_s2)
+              if bp.own_disturbance and self._own_dist is not None else None)
         sn = self._not_heard(_sensed(obs), obs.neighbours)
         unplanned = self._unplanned(sn.states, sn.ids)
         unplanned |= self._unplanned_by_braking(sn, obs.step, unplanned, own)
@@ -316,7 +322,7 @@ class _DefaultBase:
                 hover_threat = threat & hover
                 threat = threat | gap | yl
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat)
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od)
             if np.any(push) and bp.crowd_cbf:
                 # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
                 # summed push left UAVs that chased their particles through a blown crowd to cross each other
@@ -345,7 +351,7 @@ class _DefaultBase:
             # (a crowded row never escapes: threat, yield and gap entries all exclude crowded rows)
             a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
                                                      bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max,
-                                                     self._cbf_share(sn, crowd_rows))
+                                                     self._cbf_share(sn, crowd_rows), od)
         if bp.crowd_cbf and bp.cbf_last_layer and np.any(unplanned):
             # (an option, off: BackstopParams.cbf_last_layer) the same filter as the last layer of every other row that
             # senses a vehicle off the plan (not hovering) and does not escape, over the command the responses above
@@ -362,7 +368,7 @@ class _DefaultBase:
             if rows.size:
                 keep = np.flatnonzero(~hovering_off)
                 a_f, act_f = cbf_acc(own, a, sn.states[keep], sn.owner[keep], rows, bp,
-                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max)
+                                     bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max, None, od)
                 a[rows] = a_f
                 act[rows] |= act_f
         self.backstop_active = act
@@ -429,7 +435,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_tree, self._flow_tree, self._side_mem = None, None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev, self._own_a_prev = None, None, None, None
-        self._dob = None
+        self._dob, self._own_dist = None, None
         self._plan_s_hist, self._cutoff_hist = {}, {}
         # a new flight: nothing of an earlier one (a controller reused for another t = 0 exchange decides as a new one;
         # tests/test_detour.py): the detour's memory, the tracked reference, the learnt value model
@@ -1411,30 +1417,38 @@ class DefaultMFGController(_DefaultBase):
         a_nom = a_plan + a_fb
         if tp.feedback and tp.relative_priority:
             a_nom = self._relative_priority(a_plan, a_nom, obs)
+        self._own_dist = self._observe_disturbance(own, obs.step)
         a = self._backstop(own, a_nom, obs)
         a = self._reject_disturbance(own, a, obs.step)
         self._own_a_prev = (obs.step, np.array(a, dtype=float))     # the braking test's common mode, next step
         self._pending = fpk_args or ()
         return StepInfo(a, grad_evals, reg, H_hat, mf_evals)
 
+    def _observe_disturbance(self, own: np.ndarray, step: int) -> np.ndarray | None:
+        """Each row's own disturbance estimate d_hat (n, 2) at this step (guidance/disturbance.py: the velocity change
+        since the last step that the command sent then and eq. 9's drag do not explain, smoothed with
+        TrackingParams.disturbance_smoothing), or None without the previous step's sample (a gap in the steps starts
+        the observer again). Read by the feedforward (_reject_disturbance) and the backstop
+        (BackstopParams.own_disturbance); the state is kept by _reject_disturbance, after the command is known."""
+        if self._dob is None or self._dob[0] != step - 1:
+            return None
+        p = self.preset
+        _, v0, a0, d0 = self._dob
+        resid = disturbance_residual_m_s2(own[:, 2:4], v0, a0, p.dt_s, p.cost.c0_per_s, p.cost.v_o)
+        lam = p.tracking.disturbance_smoothing
+        return lam * d0 + (1.0 - lam) * resid
+
     def _reject_disturbance(self, own: np.ndarray, a: np.ndarray, step: int) -> np.ndarray:
         """The command sent for the acceleration ``a`` (n, 2) the rows chose: a less each row's observed disturbance
-        beyond the deadband (guidance/disturbance.py; TrackingParams.disturbance_feedforward), capped at acc_max. The
-        observer's state (the step, the own velocities, the commands sent, the estimate) is kept for the next step;
-        a gap in the steps starts it again from zero."""
+        beyond the deadband (self._own_dist, _observe_disturbance; TrackingParams.disturbance_feedforward), capped at
+        acc_max. The observer's state (the step, the own velocities, the commands sent, the estimate) is kept for the
+        next step."""
         tp, p = self.preset.tracking, self.preset
-        if not tp.disturbance_feedforward:
-            return a
-        v = np.array(own[:, 2:4], dtype=float)
-        d_hat = np.zeros((self.n, 2))
-        if self._dob is not None and self._dob[0] == step - 1:
-            _, v0, a0, d0 = self._dob
-            resid = disturbance_residual_m_s2(v, v0, a0, p.dt_s, p.cost.c0_per_s, p.cost.v_o)
-            lam = tp.disturbance_smoothing
-            d_hat = lam * d0 + (1.0 - lam) * resid
-        ff = shrink_m_s2(d_hat, tp.disturbance_deadband_m_s2)
-        cmd = cap_norm(a - ff, p.learner.acc_max_m_s2)
-        self._dob = (step, v, np.array(cmd, dtype=float), d_hat)
+        d_hat = np.zeros((self.n, 2)) if self._own_dist is None else self._own_dist
+        cmd = a
+        if tp.disturbance_feedforward:
+            cmd = cap_norm(a - shrink_m_s2(d_hat, tp.disturbance_deadband_m_s2), p.learner.acc_max_m_s2)
+        self._dob = (step, np.array(own[:, 2:4], dtype=float), np.array(cmd, dtype=float), d_hat)
         return cmd
 
     def finish(self) -> None:

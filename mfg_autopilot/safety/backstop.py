@@ -128,7 +128,8 @@ def _directions(k: int) -> np.ndarray:
 
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
-               side_pref: np.ndarray | None = None, hover: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               side_pref: np.ndarray | None = None, hover: np.ndarray | None = None,
+               own_dist_m_s2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -158,6 +159,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     lane side decides which side it is passed on). Safety first (bp.escape_hard_fraction, nineteenth session): if some
     candidate has a second phase that keeps every sensed entry at least escape_hard_fraction x its clearance away, the
     row takes the cheapest such candidate (its cost over those second phases); otherwise the cheapest by the cost alone.
+    own_dist_m_s2 (n, 2), optional: each row's own disturbance (what it flies beyond its command: a gust), held over the
+    horizon in every prediction of the own vehicle, the trigger's included (BackstopParams.own_disturbance).
     Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
@@ -172,7 +175,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
         np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s),
         np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float),
-        np.zeros(sensed_states.shape[0], dtype=bool) if hover is None else np.ascontiguousarray(hover, dtype=bool))
+        np.zeros(sensed_states.shape[0], dtype=bool) if hover is None else np.ascontiguousarray(hover, dtype=bool),
+        np.zeros((n, 2)) if own_dist_m_s2 is None else np.ascontiguousarray(own_dist_m_s2, dtype=float))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active
@@ -187,8 +191,8 @@ def _cbf_disc() -> np.ndarray:
 
 
 def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, rows: np.ndarray,
-            bp: BackstopParams, safe_m: float, a_max_m_s2: float, share: np.ndarray | None = None
-            ) -> tuple[np.ndarray, np.ndarray]:
+            bp: BackstopParams, safe_m: float, a_max_m_s2: float, share: np.ndarray | None = None,
+            own_dist_m_s2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Reciprocal control-barrier safety filter with acceleration limits (Wang, Ames, Egerstedt, "Safety barrier
     certificates for collision-free multirobot systems", IEEE T-RO 2017), for the bank rows ``rows``.
 
@@ -204,6 +208,8 @@ def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner
 
     and each vehicle takes its share of it (crowd_cbf_share = 1/2: reciprocal; no communication): p . a_i >= B_ij / 2.
     share (m,), optional, per entry instead (1 for a vehicle that does not take its half: one hovering in Hold).
+    own_dist_m_s2 (n, 2), optional: each row's own disturbance d_i, which its command must also make up for, p . (a_i +
+    d_i) >= share B_ij (BackstopParams.own_disturbance; the neighbour's is its own share to answer).
     The command is the one nearest a_nom with |a| <= a_max_m_s2 that meets every constraint of the row (at most
     crowd_cbf_max_constraints, the most demanding; a constraint with B / 2 <= -a_max holds for every command), or, if
     none does, the one that misses the most violated constraint least. Solved exactly over the candidates where a 2-D
@@ -223,7 +229,8 @@ def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner
                                      np.ascontiguousarray(sensed_states, dtype=float), order, starts, ends, rows,
                                      float(a_max_m_s2), float(bp.crowd_cbf_alpha_m_s2), float(bp.crowd_cbf_gamma),
                                      float(safe_m), share, int(bp.crowd_cbf_max_constraints),
-                                     _cbf_disc())
+                                     _cbf_disc(), np.zeros((own.shape[0], 2)) if own_dist_m_s2 is None
+                                     else np.ascontiguousarray(own_dist_m_s2, dtype=float))
 
 
 def warm_up() -> None:

@@ -211,9 +211,10 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
 
 
 @njit(cache=True)
-def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
+def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist):
     """Tracks of the entries ent relative to the own coasting vehicle into rel (len(ent), T + 1, 2), d + t u, and the
-    braking ones of the threats among them into rel_b (rel minus back[b_of[entry]]), in entry order."""
+    braking ones of the threats among them into rel_b (rel minus back[b_of[entry]]), in entry order. dist (n, 2): each
+    row's own disturbance, held over the horizon: the own vehicle drifts 0.5 t^2 dist besides (0: coasting alone)."""
     T1 = t.shape[0]
     nb = 0
     for q in range(ent.shape[0]):
@@ -223,9 +224,11 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
         dy = sensed_states[e, 1] - own[o, 1]
         ux = sensed_states[e, 2] - own[o, 2]
         uy = sensed_states[e, 3] - own[o, 3]
+        gx = dist[o, 0]
+        gy = dist[o, 1]
         for s in range(T1):
-            rel[q, s, 0] = dx + t[s] * ux
-            rel[q, s, 1] = dy + t[s] * uy
+            rel[q, s, 0] = dx + t[s] * ux - 0.5 * (t[s] * t[s]) * gx
+            rel[q, s, 1] = dy + t[s] * uy - 0.5 * (t[s] * t[s]) * gy
         j = b_of[e]
         if j >= 0:
             for s in range(T1):
@@ -239,11 +242,12 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b):
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
                 keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, trigger_coast, side_over_keep_right,
-                hard_fraction, side_pref, hover):
+                hard_fraction, side_pref, hover, dist):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
     least one threat. Same operations, in the same order, as the numpy code (module docstring). hover (m,) bool: the
     hovering threat entries; with trigger_coast a row is also active if coasting (a = 0 over the horizon) brings such an
-    entry below its trigger; with side_over_keep_right such an entry has no keep-right term in a row with a side."""
+    entry below its trigger; with side_over_keep_right such an entry has no keep-right term in a row with a side. dist
+    (n, 2): each row's own disturbance (the acceleration beyond its command it flies: a gust), in every prediction."""
     n = own.shape[0]
     m = sensed_states.shape[0]
     T1 = t.shape[0]
@@ -277,7 +281,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     # rows whose nominal command (held) brings a threat below its trigger
     rel_t = np.empty((n_thr, T1, 2))
     rel_tb = np.empty((n_thr, T1, 2))
-    _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb)
+    _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb, dist)
     for j in range(n_thr):
         o = owner[ti[j]]
         d1, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
@@ -316,7 +320,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             q += 1
     rel = np.empty((n_ent, T1, 2))
     rel_b = np.empty((n_bt, T1, 2))
-    _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b)
+    _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist)
     e_row = np.empty(n_ent, dtype=np.int64)
     b_index = np.full(n_ent, -1, dtype=np.int64)
     wgt = np.empty(n_ent)
@@ -932,10 +936,11 @@ def _cbf_circle(nx, ny, c, a_max, ax, ay, phx, phy, rhs, K, lim2, best):
 
 
 @njit(cache=True)
-def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha, gamma, ds, share, k_max, disc):
+def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha, gamma, ds, share, k_max, disc, own_dist):
     """backstop.cbf_acc (its docstring): the filtered command per row of ``rows`` and whether it differs from a_nom.
     order / starts / ends: the sensed entries of row rows[q] are order[starts[q]:ends[q]]; share (m,): each entry's
-    share of its constraint; disc (S, 2): unit-disc samples."""
+    share of its constraint; disc (S, 2): unit-disc samples; own_dist (n, 2): each row's own disturbance, which the
+    command's share must also make up for (ph . (a + dist) >= rhs)."""
     r = rows.shape[0]
     out = np.empty((r, 2))
     active = np.zeros(r, dtype=np.bool_)
@@ -970,7 +975,7 @@ def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha,
             root = math.sqrt(4.0 * alpha * gap)
             h = root + rdot
             b = -gamma * h * h * h - (vx * vx + vy * vy) / dist + rdot * rdot / dist - 2.0 * alpha * rdot / root
-            b = share[e] * b
+            b = share[e] * b - (nx * own_dist[i, 0] + ny * own_dist[i, 1])
             if not b > -a_max:
                 continue
             if K < k_max:

@@ -165,6 +165,12 @@ class BackstopParams:
     # twenty-first session). Off: a failure inside a gust collided less (42 runs: 5 -> 3), but the 0.5 m grid without
     # the cruise spread in a gust collided more (dense N = 144 seed 2: 1 -> 6 pairs; docs/benchmarks.md, twenty-first round)
     cbf_last_layer: bool = False
+    # MFG: the escape's predictions and the barrier filter's constraints carry the own vehicle's disturbance (the
+    # acceleration it flies beyond its command, from its own telemetry: guidance/disturbance.py, the observer of
+    # TrackingParams.disturbance_smoothing) beyond own_disturbance_deadband_m_s2: a gust across the line of sight ate
+    # the escape's swerve (swap4 --gust with a failure, N = 1,000 seed 78: 1.79 m/s^2 chosen, 1.38 against it)
+    own_disturbance: bool = True
+    own_disturbance_deadband_m_s2: float = 0.3
     tau_min_s: float = 0.5
     a_max_m_s2: float = 2.0
 
@@ -176,7 +182,8 @@ class BackstopParams:
                                ("crowd_cbf_gamma", self.crowd_cbf_gamma >= 0, ">= 0"),
                                ("crowd_cbf_safe_fraction", 0 <= self.crowd_cbf_safe_fraction < 1, "in [0, 1)"),
                                ("crowd_cbf_share", 0 < self.crowd_cbf_share <= 1, "in (0, 1]"),
-                               ("crowd_cbf_max_constraints", self.crowd_cbf_max_constraints >= 1, ">= 1")):
+                               ("crowd_cbf_max_constraints", self.crowd_cbf_max_constraints >= 1, ">= 1"),
+                               ("own_disturbance_deadband_m_s2", self.own_disturbance_deadband_m_s2 >= 0, ">= 0")):
             if not ok:
                 raise ValueError(f"BackstopParams.{name} must be {what}, got {getattr(self, name)!r}")
 
