@@ -385,6 +385,11 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                 st[:, 2:4] += a_gust * h
                 plant.states = st
         backstop_active[k] = np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)
+        for Kj, tj in failures:
+            if tj <= k * dt + 1e-9:
+                # a failed vehicle flies its Hold, not this step's command: its row's flags are no intervention (the
+                # bank still computes the row; with the disturbance observer its flags follow the Hold's acceleration)
+                backstop_active[k, Kj] = False
         grad[k], mfe[k], reg[k] = info.grad_evals, info.mf_evals, info.reg_active
         bar.update(k + 1)
     pos[T], vel[T] = plant.states[:, 0:2], plant.states[:, 2:4]

@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mfg_autopilot.guidance import controller as ctl
 from mfg_autopilot.presets import preset_by_name
 from mfg_swarm import sim
 from mfg_swarm.scenarios import make_scenario
@@ -116,6 +117,27 @@ def test_one_failed_vehicle_given_as_a_list_of_one_flies_bit_for_bit_as_given_al
     b, mb = sim.simulate(sim.SimConfig(fail_vehicle=(7,), fail_at_s=(10.0,), **kw), progress=False)
     np.testing.assert_array_equal(a.pos_m, b.pos_m)
     assert ma["fail_vehicle"] == mb["fail_vehicle"] == 7 and ma["fail_at_s"] == mb["fail_at_s"] == 10.0
+
+
+def test_a_failed_vehicles_row_is_no_safety_intervention(monkeypatch):
+    # the bank still computes the failed vehicle's row (its commands are not flown: it holds), and that row's flags follow
+    # the Hold's acceleration through the disturbance observer; safety_interventions counts only rows whose command flies
+    seen = []
+    act = ctl.DefaultMFGController.act
+
+    def spy(self, obs):
+        info = act(self, obs)
+        seen.append((obs.step, bool(self.backstop_active[3])))
+        return info
+
+    monkeypatch.setattr(ctl.DefaultMFGController, "act", spy)
+    cfg = sim.SimConfig(scenario=make_scenario("crossing", 16), mode="mfg", preset=preset_by_name("default"), seed=2,
+                        steps=80, gust=sim.GustParams(), fail_vehicle=3, fail_at_s=10.0)
+    traj, m = sim.simulate(cfg, progress=False)
+    active = traj.extra["backstop_active"]
+    assert any(flag for k, flag in seen if k * 0.5 >= 10.0)         # the row was flagged after the failure ...
+    assert not active[20:, 3].any()                                 # ... and is not counted from its failure on
+    assert m["safety_interventions"] == int(active.sum())
 
 
 def test_two_vehicles_failing_at_their_own_times_each_hold_and_the_others_arrive():
