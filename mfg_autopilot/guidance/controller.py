@@ -191,6 +191,11 @@ class _DefaultBase:
         every one (HJB_d; MFG gives all of it against a vehicle hovering in the plan's stream)."""
         return None
 
+    def _in_stream(self, states: np.ndarray) -> np.ndarray:
+        """(m,) bool: the sensed entries where the plan flies (MFG: the nearest particle faster than
+        unplanned_flow_min_m_s; HJB_d: nowhere known)."""
+        return np.zeros(states.shape[0], dtype=bool)
+
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
                          clear_m: float) -> tuple[np.ndarray, np.ndarray]:
         """(m,) the escape's trigger and clearance per sensed entry (read where ``unplanned``): trig_m, clear_m for
@@ -305,6 +310,13 @@ class _DefaultBase:
                 n_unpl = np.bincount(sn.owner[unplanned], minlength=self.n)
                 crowded = n_unpl > bp.escape_max_unplanned_fraction * np.bincount(sn.owner, minlength=self.n)
             threat = unplanned & ~crowded[sn.owner]
+            if bp.escape_hover_in_crowd and np.any(hover):
+                # a vehicle hovering off the plan where the plan flies (failed into Hold in the stream) stays a threat to
+                # a crowded row as well: passing it is the escape's swerve, which the crowd's filter (braking along each
+                # line of sight, among many constraints) did not make (paper --gust, vehicle 10 failing at 20.15 s, N =
+                # 300 seed 76: UAV 48's row, crowded by the gust, met it at 0.052 m; BackstopParams.escape_hover_in_crowd)
+                h = np.flatnonzero(hover)
+                threat[h[self._in_stream(sn.states[h])]] = True
             push = unplanned & crowded[sn.owner]
             yl &= ~crowded[sn.owner]
             # the rest (neither in the planned response nor unplanned: a neighbour cleared as common mode, or any
@@ -347,6 +359,7 @@ class _DefaultBase:
         a, act = apply_backstop(cap_norm(a_nom, a_max), da, a_max)
         if np.any(esc):
             a, act = np.where(esc[:, None], a_esc, a), act | esc
+            crowd_rows = crowd_rows[~esc[crowd_rows]]       # a crowded row that escapes a hovering vehicle (above)
         if crowd_rows.size:
             # (a crowded row never escapes: threat, yield and gap entries all exclude crowded rows)
             a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
@@ -1085,6 +1098,14 @@ class DefaultMFGController(_DefaultBase):
         _, j = self._flow_tree[1].query(xy, k=1)
         return self.plan.states[j, 2:4]
 
+    def _in_stream(self, states: np.ndarray) -> np.ndarray:
+        """(m,) bool: the entries of states (m, 4) whose nearest plan particle flies faster than unplanned_flow_min_m_s
+        (where the plan moves: a vehicle hovering there is not parked with the plan)."""
+        if self.plan is None or states.shape[0] == 0:
+            return np.zeros(states.shape[0], dtype=bool)
+        vp = self._particle_velocity_near(states[:, 0:2])
+        return vp[:, 0] ** 2 + vp[:, 1] ** 2 > self.preset.backstop.unplanned_flow_min_m_s ** 2
+
     def _cbf_share(self, sn: Neighbours, rows: np.ndarray) -> np.ndarray | None:
         """Each sensed entry's share of its barrier constraint (backstop.cbf_acc): crowd_cbf_share, but all of it (1)
         for a vehicle that hovers (slower than hover_max_speed_m_s) where the plan flies (its nearest particle faster
@@ -1102,8 +1123,7 @@ class DefaultMFGController(_DefaultBase):
         idx = np.flatnonzero(in_rows[sn.owner] & (v2 < bp.hover_max_speed_m_s ** 2))
         if idx.size == 0:
             return share
-        vp = self._particle_velocity_near(sn.states[idx, 0:2])
-        share[idx[vp[:, 0] ** 2 + vp[:, 1] ** 2 > bp.unplanned_flow_min_m_s ** 2]] = 1.0
+        share[idx[self._in_stream(sn.states[idx])]] = 1.0
         return share
 
     def _unplanned_reach(self, states: np.ndarray, unplanned: np.ndarray, trig_m: float,
