@@ -103,16 +103,21 @@ def test_the_filter_returns_the_nominal_command_when_it_is_safe_and_else_the_con
     assert min(seen.values()) >= 5, seen          # every branch is exercised
 
 
-def _fly_pair(v_closing, offset_m, dt_s, T_s=6.0, ds=0.3):
-    """Two vehicles whose nominal commands drive them into each other at a_max, both filtered; the smallest distance."""
+def _fly_pair(v_closing, offset_m, dt_s, T_s=6.0, ds=0.3, gust_m_s2=0.0, aware=False):
+    """Two vehicles whose nominal commands drive them into each other at a_max, both filtered; the smallest distance.
+    gust_m_s2: each is also blown towards the other at this acceleration (it flies command + gust); aware: each filter
+    is given its own gust (BackstopParams.own_disturbance)."""
     s = np.array([[0.0, 0.0, v_closing / 2, 0.0], [4.0, offset_m, -v_closing / 2, 0.0]])
+    g = np.array([[gust_m_s2, 0.0], [-gust_m_s2, 0.0]])
     dmin = np.inf
     for _ in range(int(T_s / dt_s)):
         d = s[1, 0:2] - s[0, 0:2]
         a_nom = np.array([d, -d]) / np.linalg.norm(d) * A_MAX
         a = np.empty((2, 2))
         for i in (0, 1):
-            a[i], _ = cbf_acc(s[i:i + 1], a_nom[i:i + 1], s[1 - i:2 - i], np.zeros(1, dtype=int), np.array([0]), BP, ds, A_MAX)
+            a[i], _ = cbf_acc(s[i:i + 1], a_nom[i:i + 1], s[1 - i:2 - i], np.zeros(1, dtype=int), np.array([0]), BP, ds, A_MAX,
+                              None, g[i:i + 1] if aware else None)
+        a = a + g
         # exact motion over the step, and the smallest distance along it (relative motion is a parabola: sample finely)
         for t in np.linspace(0, dt_s, 21):
             pos = s[:, 0:2] + s[:, 2:4] * t + 0.5 * a * t * t
@@ -134,6 +139,15 @@ def test_a_filtered_pair_never_closes_below_the_safe_distance(v_closing, offset_
     assert _barrier(own, other, BP.crowd_cbf_alpha_m_s2, ds) >= 0
     assert _fly_pair(v_closing, offset_m, 0.01, ds=ds) >= 0.99 * ds
     assert _fly_pair(v_closing, offset_m, 0.5, ds=ds) >= 0.5 * ds
+
+
+@pytest.mark.parametrize("gust", [0.5, 0.9])
+def test_the_barrier_filter_that_knows_its_own_gust_keeps_the_safe_distance(gust):
+    # a pair closing head-on at 2 m/s, each blown towards the other: with its own gust in the constraint,
+    # p . (a_i + d_i) >= B / 2 holds for what each flies (100 Hz: within 1 % of D_s); the gust leaves each vehicle
+    # a_max - gust >= the barrier's braking authority alpha (1 m/s^2). Unaware, the constraint holds for the command only
+    assert _fly_pair(2.0, 0.0, 0.01, gust_m_s2=gust, aware=True) >= 0.99 * 0.3
+    assert _fly_pair(2.0, 0.0, 0.01, gust_m_s2=gust, aware=False) < 0.9 * 0.3
 
 
 def test_without_the_filter_the_nominal_commands_collide():

@@ -374,12 +374,13 @@ class _DefaultBase:
             # closed at 1.7 m/s while one switched between escape, filter and push). Not against a vehicle that hovers
             # off the plan: passing it is the escape's (a swerve; the filter only brakes along the line of sight, and
             # braking at it in a gust met it: paper N = 1,000 seed 76)
-            hovering_off = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
-            rest = (np.bincount(sn.owner[unplanned & ~hovering_off], minlength=self.n) > 0) & ~esc
+            # (hover: the off-plan entries slower than hover_max_speed_m_s, from the block above, which every flight
+            # with an off-plan entry enters)
+            rest = (np.bincount(sn.owner[unplanned & ~hover], minlength=self.n) > 0) & ~esc
             rest[crowd_rows] = False
             rows = np.flatnonzero(rest)
             if rows.size:
-                keep = np.flatnonzero(~hovering_off)
+                keep = np.flatnonzero(~hover)
                 a_f, act_f = cbf_acc(own, a, sn.states[keep], sn.owner[keep], rows, bp,
                                      bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max, None, od)
                 a[rows] = a_f
