@@ -7,7 +7,9 @@ DIR: a `mfg-swarm sim` output folder, or a folder of them (`bench/safety_sweep.p
 and step of metrics.json's `closest_pair` (the smallest distance along the step segments), then one line per control
 step from --before steps before it to --after after: the distance at the step, the closing speed (-d|r|/dt, positive
 when closing), each UAV's speed, commanded acceleration (norm, and its component towards the other: positive when it
-accelerates into the other) and whether the backstop acted on it (`backstop_active`, recorded by `sim`).
+accelerates into the other) and whether the backstop acted on it: the safety layers that made its command
+(`backstop_layer`, `mfg_autopilot.safety.backstop.Layer`; `-` for none) where the flight recorded them, else
+`backstop_active` as 1 / 0.
 """
 
 from __future__ import annotations
@@ -18,11 +20,20 @@ from pathlib import Path
 
 import numpy as np
 
+from mfg_autopilot.safety.backstop import Layer
+
+
+def layer_names(bits: int) -> str:
+    """'escape', 'planned+gap', ... for a row's Layer bits; '-' for none."""
+    names = [layer.name.lower() for layer in Layer if int(bits) & int(layer)]
+    return "+".join(names) if names else "-"
+
 
 def pair_rows(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, active: np.ndarray | None, i: int, j: int,
-              k0: int, k1: int) -> list[dict]:
+              k0: int, k1: int, layer: np.ndarray | None = None) -> list[dict]:
     """One dict per step k in [k0, k1] (clipped to the flight): distance, closing speed, and per UAV i / j its speed,
-    commanded acceleration norm, its component towards the other, and the backstop flag (None where not recorded)."""
+    commanded acceleration norm, its component towards the other, the backstop flag and its layers' names (None where
+    not recorded; layer: the (T, N) Layer bits)."""
     out = []
     T = pos_m.shape[0] - 1
     for k in range(max(0, k0), min(T, k1) + 1):
@@ -37,6 +48,7 @@ def pair_rows(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, acti
             row[f"acc_{name}_m_s2"] = float(np.linalg.norm(acc))
             row[f"acc_{name}_towards_m_s2"] = float(sgn * (acc @ n))
             row[f"backstop_{name}"] = None if active is None or k >= active.shape[0] else bool(active[k, a])
+            row[f"layer_{name}"] = None if layer is None or k >= layer.shape[0] else layer_names(layer[k, a])
         out.append(row)
     return out
 
@@ -49,13 +61,17 @@ def report(run: Path, before: int, after: int) -> str:
     i, j, k = (int(x) for x in cp)
     z = np.load(run / "trajectories.npz")
     active = z["backstop_active"] if "backstop_active" in z.files else None
+    layer = z["backstop_layer"] if "backstop_layer" in z.files else None
     dt = float(m.get("dt_s") or z["dt_s"])
     lines = [f"{run}: UAVs {i} and {j}, {m['min_pair_distance_m']:.3f} m on the segment from step {k} (t = {k * dt:g} s); "
              f"{m.get('collision_pairs')} collided pairs, start spacing {m.get('start_spacing_m')} m",
              "| step | t s | dist m | closing m/s | speed i / j m/s | acc i / j m/s^2 | towards i / j m/s^2 | backstop i / j |",
              "|---|---|---|---|---|---|---|---|"]
-    for r in pair_rows(z["pos_m"], z["vel_m_s"], z["acc_m_s2"], active, i, j, k - before, k + after):
-        b = "-" if r["backstop_i"] is None else f"{int(r['backstop_i'])} / {int(r['backstop_j'])}"
+    for r in pair_rows(z["pos_m"], z["vel_m_s"], z["acc_m_s2"], active, i, j, k - before, k + after, layer):
+        if r["layer_i"] is not None:
+            b = f"{r['layer_i']} / {r['layer_j']}"
+        else:
+            b = "-" if r["backstop_i"] is None else f"{int(r['backstop_i'])} / {int(r['backstop_j'])}"
         lines.append(f"| {r['step']} | {r['step'] * dt:g} | {r['dist_m']:.3f} | {r['closing_m_s']:+.2f} | "
                      f"{r['speed_i_m_s']:.2f} / {r['speed_j_m_s']:.2f} | {r['acc_i_m_s2']:.2f} / {r['acc_j_m_s2']:.2f} | "
                      f"{r['acc_i_towards_m_s2']:+.2f} / {r['acc_j_towards_m_s2']:+.2f} | {b} |")

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.safety.backstop import counts_by_layer
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_new_lines, read_vehicle_tlog, realtime_grid
@@ -630,6 +631,8 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     mfe = np.zeros((T_eff, n), dtype=np.int64)
     reg = np.zeros((T_eff, n), dtype=bool)
     backstop = np.zeros((T_eff, n), dtype=bool)
+    layer = np.zeros((T_eff, n), dtype=np.uint8)       # safety.backstop.Layer bits, as the simulator records them
+    layered = False                                     # (the default controllers log them; orca does not)
     plan_pos = np.full((T_eff + 1, n, 2), np.nan)       # each UAV's own plan particle (MFG default), from its log
     dest = np.array(json.loads((out / "mission.json").read_text())["sites_m"], dtype=float).reshape(n, 2)
     for i, lg in enumerate(logs):
@@ -644,12 +647,15 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
                 mfe[k, i] = rec.get("mf_evals", 0)
                 reg[k, i] = rec.get("reg_active", False)
                 backstop[k, i] = rec.get("backstop_active", False)
+                if "backstop_layer" in rec:
+                    layered = True
+                    layer[k, i] = rec["backstop_layer"]
             if k <= T_eff and rec.get("plan_pos_m") is not None:
                 plan_pos[k, i] = rec["plan_pos_m"]
         if lg.end is not None and lg.end.get("destination_m") is not None:
             dest[i] = lg.end["destination_m"]
     w_ref = np.array([rec["w_H"] for rec in logs[0].steps[: T_eff + 1]], dtype=float) if logs and logs[0].steps else None
-    extra = {"backstop_active": backstop}
+    extra = {"backstop_active": backstop, **({"backstop_layer": layer} if layered else {})}
     if t0 is not None:
         extra["t0_unix_s"] = np.array(float(t0))      # real time: the wall time of t_0 (flight.mcap's clock)
     traj = Trajectories(dt_s=dt, pos_m=states[:, :, 0:2], vel_m_s=states[:, :, 2:4], acc_m_s2=acc, dest_m=dest,
@@ -659,6 +665,8 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     metrics["steps_requested"] = T
     metrics["backstop_activations"] = int(backstop.sum())
     metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
+    if layered:
+        metrics["safety_interventions_by_layer"] = counts_by_layer(layer)     # as `sim` reports it
     plans = [ev["plan"] for lg in logs for ev in lg.events if ev.get("what") == "t0_exchange" and "plan" in ev]
     if plans:
         metrics["plan"] = plans[0]                   # every controller computes the same plan from the same exchange

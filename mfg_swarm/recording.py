@@ -330,7 +330,8 @@ _SEPARATION_SCHEMA = {"title": "mfg_swarm.SwarmSeparation", "type": "object", "p
 _CONTROLLER_SCHEMA = {"title": "mfg_swarm.ControllerStep", "type": "object", "properties": {
     "step": {"type": "integer"}, "time_s": {"type": "number"}, "grad_evals": {"type": "integer"},
     "mf_evals": {"type": "integer"}, "reg_active": {"type": "boolean"}, "residual": {"type": "number"},
-    "states_received": {"type": "integer"}, "backstop_active": {"type": "boolean"}, "latency_ms": {"type": "number"}}}
+    "states_received": {"type": "integer"}, "backstop_active": {"type": "boolean"}, "backstop_layer": {"type": "integer"},
+    "latency_ms": {"type": "number"}}}
 _CONTROLLER_STEP_KEYS = tuple(_CONTROLLER_SCHEMA["properties"])
 
 

@@ -47,6 +47,7 @@ from scipy.spatial import cKDTree
 from mfg_autopilot.interface import HeardSummary, Neighbours, Observation
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.presets import MODES, make_controller
+from mfg_autopilot.safety.backstop import counts_by_layer
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, braking_stop_m, hold_acc_m_s2, jerk_limited_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
@@ -318,6 +319,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     h_sub = dt / plant.params.substeps(dt)        # a failure inside a control step begins at a physics sub-step
     backstop_active = np.zeros((T, n), dtype=bool)
+    # which safety layer made each command (safety.backstop.Layer bits), for controllers that say (the default ones)
+    layered = hasattr(ctrl, "backstop_layer")
+    backstop_layer = np.zeros((T, n), dtype=np.uint8) if layered else None
     for k in range(T):
         obs = f32(plant.states)
         pos[k], vel[k] = plant.states[:, 0:2], plant.states[:, 2:4]
@@ -385,11 +389,15 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                 st[:, 2:4] += a_gust * h
                 plant.states = st
         backstop_active[k] = np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)
+        if layered:
+            backstop_layer[k] = np.asarray(ctrl.backstop_layer, dtype=np.uint8)
         for Kj, tj in failures:
             if tj <= k * dt + 1e-9:
                 # a failed vehicle flies its Hold, not this step's command: its row's flags are no intervention (the
                 # bank still computes the row; with the disturbance observer its flags follow the Hold's acceleration)
                 backstop_active[k, Kj] = False
+                if layered:
+                    backstop_layer[k, Kj] = 0
         grad[k], mfe[k], reg[k] = info.grad_evals, info.mf_evals, info.reg_active
         bar.update(k + 1)
     pos[T], vel[T] = plant.states[:, 0:2], plant.states[:, 2:4]
@@ -400,12 +408,17 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
 
     traj = Trajectories(dt_s=dt, pos_m=pos, vel_m_s=vel, acc_m_s2=acc_log, dest_m=np.asarray(ctrl.destinations_m, dtype=float).copy(),
                         comm_states=comm, grad_evals=grad, mf_evals=mfe, reg_active=reg, w_H_ref=w_ref,
-                        extra={"backstop_active": backstop_active})
+                        extra={"backstop_active": backstop_active,
+                               **({"backstop_layer": backstop_layer} if layered else {})})
     metrics = compute_metrics(traj, n=n, mode=cfg.mode, range_m=cfg.range_m if cfg.gossips else None,
                               seed=cfg.seed, wall_s=time.perf_counter() - t_wall, scenario=sc.name,
                               preset=preset.name, path="sim")
     metrics["backstop_activations"] = int(backstop_active.sum())
     metrics["safety_interventions"] = metrics["backstop_activations"]   # (vehicle, step) pairs the backstop acted
+    if layered:
+        # the same (vehicle, step) pairs by the layer that made the command (a row may carry two bits: a filtered
+        # layer and the last layer over it)
+        metrics["safety_interventions_by_layer"] = counts_by_layer(backstop_layer)
     cert = getattr(ctrl, "plan_certificate", None)
     if cert is not None:
         metrics["plan"] = cert            # what the t = 0 plan guarantees (guidance: rigid, scheduled groups, or none)

@@ -86,6 +86,10 @@ def test_lockstep_default_preset_with_proximity_sensor_equals_the_simulator(tmp_
     np.testing.assert_array_equal(act_p, act_s)
     assert m_p["backstop_activations"] == m_s["backstop_activations"] == int(act_s.sum())
     assert (m_s["backstop_activations"] > 0) == expect_backstop
+    # and the same layer made each command (safety.backstop.Layer: the controllers' logs carry it to the launcher)
+    np.testing.assert_array_equal(traj_p.extra["backstop_layer"], traj_s.extra["backstop_layer"])
+    assert m_p["safety_interventions_by_layer"] == m_s["safety_interventions_by_layer"]
+    assert (m_p["safety_interventions_by_layer"]["planned"] > 0) == expect_backstop     # HJB_d's reciprocal push
     for k in ("collision_pairs", "comm_states_per_uav"):
         assert m_p[k] == m_s[k], k
 

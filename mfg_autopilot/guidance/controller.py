@@ -40,7 +40,7 @@ from mfg_autopilot.paper.meanfield import fit_initial_fpk_weights
 from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift, optimal_action
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
-from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, cbf_acc, escape_acc
+from mfg_autopilot.safety.backstop import Layer, apply_backstop, backstop_acc, cbf_acc, escape_acc
 from mfg_autopilot.safety.kernels import braking_scan, distinct_dense, formation_sums, slot_claims
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
@@ -113,6 +113,7 @@ class _DefaultBase:
         bp = preset.backstop
         self.sensor_range_m = bp.sensor_range_m if bp.enabled else None
         self.backstop_active = np.zeros(self.n, dtype=bool)
+        self.backstop_layer = np.zeros(self.n, dtype=np.uint8)     # safety.backstop.Layer bits per row, this step
         self.backstop_steps = np.zeros(self.n, dtype=np.int64)
         self._own_err: np.ndarray | None = None     # MFG: each row's deviation from its plan particle, s - s_plan (n, 4)
         # MFG: each row's own disturbance estimate this step (n, 2), guidance/disturbance.py; None before the observer has
@@ -231,6 +232,7 @@ class _DefaultBase:
     def _backstop_rows(self, own: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
         bp, a_max = self.preset.backstop, self.preset.learner.acc_max_m_s2
         if not bp.enabled:
+            self.backstop_layer = np.zeros(self.n, dtype=np.uint8)
             return cap_norm(a_nom, a_max)
         # the own disturbance the escape and the barrier filter predict the own vehicle with (BackstopParams.own_disturbance)
         od = (shrink_m_s2(self._own_dist, bp.own_disturbance_deadband_m_s2)
@@ -284,6 +286,8 @@ class _DefaultBase:
             off = np.linalg.norm(self._own_err[:, 0:2], axis=1) > bp.planned_max_own_dev_m
             planned &= ~off[sn.owner]
         da = backstop_acc(own, sn.states, sn.owner, bp, select=planned)
+        # which layer's push is in each row's half-plane constraint (safety.backstop.Layer; attribution only)
+        half = np.where(np.any(da != 0.0, axis=1), np.uint8(Layer.PLANNED), np.uint8(0))
         esc = np.zeros(self.n, dtype=bool)
         crowd_rows = np.zeros(0, dtype=np.int64)
         # a UAV off its own particle yields to a vehicle on its own that neither response covers (_yielding)
@@ -349,22 +353,29 @@ class _DefaultBase:
                     bu = replace(bp, trigger_m=e_trig, target_m=e_clear, share=bp.unplanned_share)
                 else:
                     bu = replace(bp, trigger_m=u_trig, target_m=u_clear, share=bp.unplanned_share)
-                da = cap_norm(da + backstop_acc(own, sn.states, sn.owner, bu, select=push), bp.a_max_m_s2)
+                d_push = backstop_acc(own, sn.states, sn.owner, bu, select=push)
+                half |= np.where(np.any(d_push != 0.0, axis=1), np.uint8(Layer.PUSH), np.uint8(0))
+                da = cap_norm(da + d_push, bp.a_max_m_s2)
         gp = self._gap_pairs(sn, planned | unplanned | yl)
         if np.any(gp):
             sp_now = self._spacing_now_m()
             bg = replace(bp, trigger_m=bp.gap_push_trigger_fraction * sp_now, target_m=bp.gap_push_target_fraction * sp_now,
                          share=bp.gap_push_share, horizon_s=bp.gap_push_horizon_s)
-            da = cap_norm(da + backstop_acc(own, sn.states, sn.owner, bg, select=gp), bp.a_max_m_s2)
+            d_gap = backstop_acc(own, sn.states, sn.owner, bg, select=gp)
+            half |= np.where(np.any(d_gap != 0.0, axis=1), np.uint8(Layer.GAP), np.uint8(0))
+            da = cap_norm(da + d_gap, bp.a_max_m_s2)
         a, act = apply_backstop(cap_norm(a_nom, a_max), da, a_max)
+        layer = np.where(act, half, np.uint8(0))
         if np.any(esc):
             a, act = np.where(esc[:, None], a_esc, a), act | esc
+            layer[esc] = Layer.ESCAPE
             crowd_rows = crowd_rows[~esc[crowd_rows]]       # a crowded row that escapes a hovering vehicle (above)
         if crowd_rows.size:
             # (a crowded row never escapes: threat, yield and gap entries all exclude crowded rows)
             a[crowd_rows], act[crowd_rows] = cbf_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, crowd_rows, bp,
                                                      bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max,
                                                      self._cbf_share(sn, crowd_rows), od)
+            layer[crowd_rows] = np.where(act[crowd_rows], np.uint8(Layer.CROWD_CBF), np.uint8(0))
         if bp.crowd_cbf and bp.cbf_last_layer and np.any(unplanned):
             # (an option, off: BackstopParams.cbf_last_layer) the same filter as the last layer of every other row that
             # senses a vehicle off the plan (not hovering) and does not escape, over the command the responses above
@@ -385,7 +396,9 @@ class _DefaultBase:
                                      bp.crowd_cbf_safe_fraction * self._spacing_m(), a_max, None, od)
                 a[rows] = a_f
                 act[rows] |= act_f
+                layer[rows] |= np.where(act_f, np.uint8(Layer.LAST_CBF), np.uint8(0))
         self.backstop_active = act
+        self.backstop_layer = layer
         self.backstop_steps += act
         return a
 
@@ -455,6 +468,7 @@ class DefaultMFGController(_DefaultBase):
         # tests/test_detour.py): the detour's memory, the tracked reference, the learnt value model
         self._detour_mem, self._detour_state, self._ref_pos, self._own_err = None, None, None, None
         self.backstop_active = np.zeros(self.n, dtype=bool)
+        self.backstop_layer = np.zeros(self.n, dtype=np.uint8)
         self.w_H = np.tile(lqr_value_weights(self.sigma_H, p.tracking_cost), (self.n, 1))
         rigid = (rigid_plan_for(S0, sites_m, p.dt_s, p.cost, p.guidance.v_cruise_m_s, p.guidance.a_brake_m_s2,
                                 translation=p.rigid_translation, cruise_spacing_m=p.cruise_spacing_m)

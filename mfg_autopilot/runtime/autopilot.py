@@ -264,6 +264,9 @@ class Autopilot:
                "sensed_ids": None if obs.sensed is None else obs.sensed.ids.tolist(),
                "backstop_active": bool(np.asarray(getattr(self.ctrl, "backstop_active", [False]))[0]),
                "w_H": w["w_H"][0], "wall_s": time.time()}
+        if hasattr(self.ctrl, "backstop_layer"):
+            # which safety layer made the command (safety.backstop.Layer bits; 0: none): the default controllers
+            rec["backstop_layer"] = int(np.asarray(self.ctrl.backstop_layer)[0])
         if self._plan_pos is not None:
             rec["plan_pos_m"] = self._plan_pos[0]
         every = self.cfg.log_fpk_weights_every
