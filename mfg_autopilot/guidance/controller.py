@@ -40,7 +40,7 @@ from mfg_autopilot.paper.meanfield import fit_initial_fpk_weights
 from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift, optimal_action
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
-from mfg_autopilot.safety.backstop import Layer, apply_backstop, backstop_acc, cbf_acc, escape_acc
+from mfg_autopilot.safety.backstop import Layer, apply_backstop, backstop_acc, cannot_brake_short, cbf_acc, escape_acc
 from mfg_autopilot.safety.kernels import braking_scan, distinct_dense, formation_sums, slot_claims
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
@@ -320,7 +320,17 @@ class _DefaultBase:
                 # line of sight, among many constraints) did not make (paper --gust, vehicle 10 failing at 20.15 s, N =
                 # 300 seed 76: UAV 48's row, crowded by the gust, met it at 0.052 m; BackstopParams.escape_hover_in_crowd)
                 h = np.flatnonzero(hover)
-                threat[h[self._in_stream(sn.states[h])]] = True
+                h = h[self._in_stream(sn.states[h])]
+                if h.size:
+                    # only a row at stream speed that braking cannot stop short of it (a row slow at its departure, next
+                    # to neighbours as slow, brakes: crossing --gust N = 137 seed 117)
+                    r = sn.owner[h]
+                    vmin = bp.escape_hover_in_crowd_min_speed_m_s
+                    keep = own[r, 2] ** 2 + own[r, 3] ** 2 > vmin * vmin
+                    if bp.escape_hover_in_crowd_brake_gate:
+                        keep &= cannot_brake_short(own, sn.states[h], r, e_clear[h], a_max, self.preset.dt_s)
+                    h = h[keep]
+                threat[h] = True
             push = unplanned & crowded[sn.owner]
             yl &= ~crowded[sn.owner]
             # the rest (neither in the planned response nor unplanned: a neighbour cleared as common mode, or any

@@ -40,7 +40,7 @@ from mfg_autopilot.paper.model import cap_norm
 from mfg_autopilot.safety import kernels as backstop_kernels
 from mfg_autopilot.safety.params import BackstopParams
 
-__all__ = ["Layer", "counts_by_layer", "backstop_acc", "apply_backstop", "escape_acc", "cbf_acc", "warm_up"]
+__all__ = ["Layer", "counts_by_layer", "cannot_brake_short", "backstop_acc", "apply_backstop", "escape_acc", "cbf_acc", "warm_up"]
 
 
 class Layer(enum.IntFlag):
@@ -203,6 +203,28 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active
+
+
+def cannot_brake_short(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, clear_m: np.ndarray,
+                       a_max_m_s2: float, react_s: float) -> np.ndarray:
+    """(m,) bool: the sensed entries that their own row (owner (m,), own (n, 4)) cannot stop short of by braking: the row
+    closes on the entry along the line of sight at v_c = -(dp . dv) / |dp| > 0 (dp = r_j - r_i, dv = v_j - v_i) and
+
+        v_c^2 / (2 a_max) + v_c react_s >= |dp| - clear_m,
+
+    i.e. keeping on for react_s (one control period: the command is decided now and flown until the next sample) and then
+    braking at a_max along the line of sight brings it closer than clear_m (m,). The entry is taken as it is (a hovering
+    vehicle: its own motion is what the row senses). This is where a filter that only brakes along each line of sight
+    (the crowd's barrier filter, cbf_acc) has no feasible answer left, and a swerve (escape_acc) is needed."""
+    own = np.asarray(own, dtype=float)
+    q = np.asarray(sensed_states, dtype=float)
+    if q.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    dp = q[:, 0:2] - own[owner, 0:2]
+    dv = q[:, 2:4] - own[owner, 2:4]
+    d = np.hypot(dp[:, 0], dp[:, 1])
+    vc = -np.sum(dp * dv, axis=1) / np.maximum(d, 1e-12)
+    return (vc > 0.0) & (vc * vc / (2.0 * a_max_m_s2) + vc * react_s >= d - np.asarray(clear_m, dtype=float))
 
 
 @functools.lru_cache(maxsize=1)

@@ -169,9 +169,14 @@ class BackstopParams:
     # flies (hover_max_speed_m_s, unplanned_flow_min_m_s: failed into Hold in the stream), and then takes no crowd filter:
     # the filter brakes along each line of sight among many constraints, and three UAVs whose rows a gust had crowded met
     # the failed vehicle so (paper N = 300 s76, N = 1,000 s78, circle N = 300 s77; docs/benchmarks.md, twenty-second round).
-    # An option, off: a UAV still slow at its group's departure, blown behind its particle, is 'hovering in the stream'
-    # too, and crossing --gust N = 137 seed 117 (no failure) came to 0.114 m (0.304 without it)
-    escape_hover_in_crowd: bool = False
+    # Only where braking cannot do it (twenty-third session): the row flies faster than
+    # escape_hover_in_crowd_min_speed_m_s and (escape_hover_in_crowd_brake_gate) closes on the vehicle faster than it can
+    # stop short of the escape's clearance braking at a_max after one control period (backstop.cannot_brake_short). Without
+    # the gates a UAV still slow at its group's departure, blown behind its particle, is 'hovering in the stream' too, and
+    # its crowded neighbours swerved into each other (crossing --gust N = 137 seed 117, no failure: 0.114 m; 0.304 with them)
+    escape_hover_in_crowd: bool = True
+    escape_hover_in_crowd_min_speed_m_s: float = 2.0
+    escape_hover_in_crowd_brake_gate: bool = True
     # MFG: the escape's predictions and the barrier filter's constraints carry the own vehicle's disturbance (the
     # acceleration it flies beyond its command, from its own telemetry: guidance/disturbance.py, the observer of
     # TrackingParams.disturbance_smoothing) beyond own_disturbance_deadband_m_s2: a gust across the line of sight ate
@@ -190,7 +195,9 @@ class BackstopParams:
                                ("crowd_cbf_safe_fraction", 0 <= self.crowd_cbf_safe_fraction < 1, "in [0, 1)"),
                                ("crowd_cbf_share", 0 < self.crowd_cbf_share <= 1, "in (0, 1]"),
                                ("crowd_cbf_max_constraints", self.crowd_cbf_max_constraints >= 1, ">= 1"),
-                               ("own_disturbance_deadband_m_s2", self.own_disturbance_deadband_m_s2 >= 0, ">= 0")):
+                               ("own_disturbance_deadband_m_s2", self.own_disturbance_deadband_m_s2 >= 0, ">= 0"),
+                               ("escape_hover_in_crowd_min_speed_m_s", self.escape_hover_in_crowd_min_speed_m_s >= 0,
+                                ">= 0")):
             if not ok:
                 raise ValueError(f"BackstopParams.{name} must be {what}, got {getattr(self, name)!r}")
 
