@@ -20,13 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mfg_autopilot.safety.backstop import Layer
-
-
-def layer_names(bits: int) -> str:
-    """'escape', 'planned+gap', ... for a row's Layer bits; '-' for none."""
-    names = [layer.name.lower() for layer in Layer if int(bits) & int(layer)]
-    return "+".join(names) if names else "-"
+from mfg_autopilot.safety.layers import layer_names
 
 
 def pair_rows(pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray, active: np.ndarray | None, i: int, j: int,

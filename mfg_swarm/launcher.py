@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from mfg_autopilot.presets import make_controller, preset_by_name
-from mfg_autopilot.safety.backstop import counts_by_layer
+from mfg_autopilot.safety.layers import counts_by_layer
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
 from .flightlog import lockstep_grid, read_controller_log, read_new_lines, read_vehicle_tlog, realtime_grid

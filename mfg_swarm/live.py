@@ -94,10 +94,13 @@ class LiveView:
         state = np.array([r["state"][:4] for r in rows], dtype=float)
         acc = np.array([(r.get("acc_m_s2") or [np.nan, np.nan])[:2] for r in rows], dtype=float)
         backstop = np.array([bool(r.get("backstop_active", False)) for r in rows])
+        # which safety layer made each command (the default controllers log it: safety.backstop.Layer bits)
+        layer = (np.array([int(r.get("backstop_layer", 0)) for r in rows], dtype=np.uint8)
+                 if any("backstop_layer" in r for r in rows) else None)
         if self._pub is None:                       # real time: t_0 is the wall time of the first instant
             t0 = min(float(r.get("wall_s", 0.0)) for r in rows) - k * self.dt_s
             self._pub = InstantPublisher(self.channels, base_s=t0, **self._pub_args)
-        self._pub.log(k * self.dt_s, state[:, 0:2], state[:, 2:4], acc, backstop)
+        self._pub.log(k * self.dt_s, state[:, 0:2], state[:, 2:4], acc, backstop, backstop_layer=layer)
 
     def close(self) -> None:
         self.poll()

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from mfg_autopilot.mission import DEFAULT_DATUM, GeodeticPoint, SwarmFrame
+from mfg_autopilot.safety.layers import layer_names
 
 from . import metrics as M
 from .flightlog import ControllerRecord, lockstep_grid, read_controller_log, read_vehicle_tlog, realtime_grid
@@ -64,6 +65,7 @@ class FlightRecord:
     altitude_agl_m: np.ndarray                   # (N,) drawn height above the datum
     t0_unix_s: float | None = None               # None: simulation time; else the wall time of t_0
     backstop_active: np.ndarray | None = None    # (T, N) bool: the backstop changed the command
+    backstop_layer: np.ndarray | None = None     # (T, N) uint8: which safety layer made it (safety.backstop.Layer bits)
     controller_logs: list[ControllerRecord] = field(default_factory=list)   # [] or N logs
     source: str = "trajectories.npz"
 
@@ -303,6 +305,14 @@ def load_run(run_dir: str | Path, *, mission=None, datum: GeodeticPoint | None =
             for rec in lg.steps:
                 if 0 <= rec.get("step", -1) < backstop.shape[0]:
                     backstop[rec["step"], i] = bool(rec.get("backstop_active", False))
+    layer = traj.extra.get("backstop_layer")
+    if layer is None and any("backstop_layer" in rec for lg in logs for rec in lg.steps):
+        # (the default controllers log it; a folder without trajectories.npz rebuilds it from their logs)
+        layer = np.zeros((traj.acc_m_s2.shape[0], n), dtype=np.uint8)
+        for i, lg in enumerate(logs):
+            for rec in lg.steps:
+                if 0 <= rec.get("step", -1) < layer.shape[0]:
+                    layer[rec["step"], i] = int(rec.get("backstop_layer", 0))
     if mission is not None and mission.n == n:
         alt = mission.arrays()["altitude_agl_m"]
     else:
@@ -311,6 +321,7 @@ def load_run(run_dir: str | Path, *, mission=None, datum: GeodeticPoint | None =
         mission.safety_radius_m if mission is not None else metrics.get("safety_radius_m") or DEFAULT_SAFETY_RADIUS_M)
     return FlightRecord(traj=traj, metrics=metrics, datum=datum, safety_radius_m=float(r), altitude_agl_m=alt,
                         t0_unix_s=t0_unix, backstop_active=None if backstop is None else np.asarray(backstop, dtype=bool),
+                        backstop_layer=None if layer is None else np.asarray(layer, dtype=np.uint8),
                         controller_logs=logs, source=source)
 
 
@@ -322,7 +333,8 @@ _STATE_SCHEMA = {"title": "mfg_swarm.VehicleState", "type": "object", "propertie
     "distance_to_slot_m": {"type": "number"}}}
 _SETPOINT_SCHEMA = {"title": "mfg_swarm.AccelerationSetpoint", "type": "object", "properties": {
     "t_s": {"type": "number"}, "acc_north_m_s2": {"type": "number"}, "acc_east_m_s2": {"type": "number"},
-    "acc_norm_m_s2": {"type": "number"}, "backstop_active": {"type": "boolean"}}}
+    "acc_norm_m_s2": {"type": "number"}, "backstop_active": {"type": "boolean"}, "backstop_layer": {"type": "integer"},
+    "backstop_layers": {"type": "string"}}}
 _SEPARATION_SCHEMA = {"title": "mfg_swarm.SwarmSeparation", "type": "object", "properties": {
     "t_s": {"type": "number"}, "min_separation_m": {"type": "number"}, "closest_i": {"type": "integer"},
     "closest_j": {"type": "integer"}, "arrived": {"type": "integer"}, "arrived_fraction": {"type": "number"},
@@ -423,9 +435,11 @@ class InstantPublisher:
         return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
 
     def log(self, t_s: float, pos_m: np.ndarray, vel_m_s: np.ndarray, acc_m_s2: np.ndarray | None = None,
-            backstop_active: np.ndarray | None = None, collided_pairs_so_far: int | None = None) -> None:
+            backstop_active: np.ndarray | None = None, collided_pairs_so_far: int | None = None,
+            backstop_layer: np.ndarray | None = None) -> None:
         """The instant t_s: pos_m, vel_m_s (N, 2); acc_m_s2 (N, 2) applied from t_s on (None at the last instant);
-        backstop_active (N,) bool or None. A UAV whose position is NaN is left out."""
+        backstop_active (N,) bool or None; backstop_layer (N,) safety.backstop.Layer bits or None (the setpoint then
+        carries them and their names). A UAV whose position is NaN is left out."""
         from foxglove.messages import (ArrowPrimitive, Color, KeyValuePair, LinePrimitive, LocationFix, Point3, Pose,
                                        Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, TextPrimitive, Vector3)
 
@@ -458,6 +472,9 @@ class InstantPublisher:
                 sp = {"t_s": t_s, "acc_north_m_s2": float(a[0]), "acc_east_m_s2": float(a[1]), "acc_norm_m_s2": float(np.hypot(*a))}
                 if backstop_active is not None:
                     sp["backstop_active"] = bool(backstop_active[i])
+                if backstop_layer is not None:
+                    sp["backstop_layer"] = int(backstop_layer[i])
+                    sp["backstop_layers"] = layer_names(backstop_layer[i])
                 ch.setpoint[i].log(sp, log_time=lt); self.counts.add("/uav*/setpoint")
             p3 = Vector3(x=float(pos[i, 1]), y=float(pos[i, 0]), z=float(self.alt[i]))
             yaw = math.atan2(float(v_ne[0]), float(v_ne[1]))        # ENU: angle from x (east) towards y (north)
@@ -540,13 +557,18 @@ def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
                 (f"collision: UAVs {i} and {j} closer than {M.COLLISION_DISTANCE_M} m (closest {dmin_ij:.3f} m, "
                  f"steps {k0}-{k1})", LogLevel.Error))
         for v, k0, k1 in bs:
+            # the layers that made the commands over the interval (their union), where the flight recorded them
+            layers = (layer_names(int(np.bitwise_or.reduce(rec.backstop_layer[k0:k1 + 1, v])))
+                      if rec.backstop_layer is not None else None)
             ev = Event(start_time=pub.stamp(t_s[k0]), end_time=pub.stamp(t_s[k1 + 1]),
                        metadata=[KeyValuePair(key="kind", value="backstop"), KeyValuePair(key="uav", value=str(v)),
                                  KeyValuePair(key="first_step", value=str(k0)), KeyValuePair(key="last_step", value=str(k1)),
-                                 KeyValuePair(key="steps", value=str(k1 - k0 + 1))])
+                                 KeyValuePair(key="steps", value=str(k1 - k0 + 1))]
+                       + ([KeyValuePair(key="layers", value=layers)] if layers is not None else []))
             ch.backstop.log(ev, log_time=_ns(base + t_s[k0])); counts.add("/events/backstop")
             step_logs.setdefault(k0, []).append(
-                (f"backstop: UAV {v} corrected its command for {k1 - k0 + 1} step(s) from step {k0}", LogLevel.Warning))
+                (f"backstop: UAV {v} corrected its command for {k1 - k0 + 1} step(s) from step {k0}"
+                 + (f" ({layers})" if layers is not None else ""), LogLevel.Warning))
 
         first_contact = sorted(e[2] for e in col_events)
         collided = 0
@@ -554,7 +576,8 @@ def write_mcap(rec: FlightRecord, out_path: str | Path) -> RecordingSummary:
             while collided < len(first_contact) and first_contact[collided] <= k:
                 collided += 1
             pub.log(float(t_s[k]), pos[k], traj.vel_m_s[k], traj.acc_m_s2[k] if k < T else None,
-                    rec.backstop_active[k] if (rec.backstop_active is not None and k < T) else None, collided)
+                    rec.backstop_active[k] if (rec.backstop_active is not None and k < T) else None, collided,
+                    rec.backstop_layer[k] if (rec.backstop_layer is not None and k < T) else None)
             for text, level in step_logs.get(k, []):
                 ch.log.log(Log(timestamp=pub.stamp(float(t_s[k])), level=level, message=text, name="mfg_swarm"),
                            log_time=_ns(base + t_s[k]))

@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 from mfg_autopilot.interface import HeardSummary, Neighbours, Observation
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.presets import MODES, make_controller
-from mfg_autopilot.safety.backstop import counts_by_layer
+from mfg_autopilot.safety.layers import counts_by_layer
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, braking_stop_m, hold_acc_m_s2, jerk_limited_m_s2
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 

@@ -124,6 +124,14 @@ def test_backstop_interventions_are_events_whose_steps_add_up_to_the_metric(tmp_
     assert m["backstop_activations"] > 0
     steps = [int({p.key: p.value for p in e.metadata}["steps"]) for _, e in msgs["/events/backstop"]]
     assert sum(steps) == m["backstop_activations"]
+    # which layer acted (safety.backstop.Layer): HJB_d's backstop is the planned vehicles' reciprocal push, so every
+    # intervention event names it, and every setpoint carries the bits the trajectories recorded, with their names
+    assert {{p.key: p.value for p in e.metadata}["layers"] for _, e in msgs["/events/backstop"]} == {"planned"}
+    layer = load_trajectories(tmp_path / "fail" / "trajectories.npz").extra["backstop_layer"]
+    for i in range(m["n"]):
+        sps = [s for _, s in msgs[f"/uav{i}/setpoint"]]
+        assert [s["backstop_layer"] for s in sps] == layer[:, i].tolist()
+        assert all(s["backstop_layers"] == ("planned" if s["backstop_active"] else "-") for s in sps)
     # HJB_0.3 is no safe controller (with dense starting at rest it collides once here): whatever it does, the
     # recording has one collision event per collided pair of the metric
     assert len(msgs.get("/events/collision", [])) == m["collision_pairs"]
@@ -282,6 +290,13 @@ def test_run_records_by_default_with_the_controllers_logs(swarm_run):
         assert len(msgs[f"/uav{i}/fix"]) == m["steps"] + 1
         assert len(msgs[f"/uav{i}/controller"]) >= m["steps"]
         assert any("offboard" in lg.message for _, lg in msgs[f"/uav{i}/controller_log"])
+    # the default controllers log which safety layer made each command; run keeps it and the recording carries it
+    layer = load_trajectories(swarm_run / "trajectories.npz").extra["backstop_layer"]
+    assert m["safety_interventions_by_layer"]["escape"] == int(np.count_nonzero(layer & 2))
+    for i in range(m["n"]):
+        sps = [s for _, s in msgs[f"/uav{i}/setpoint"]]
+        assert [s["backstop_layer"] for s in sps] == layer[:, i].tolist()
+        assert [c["backstop_layer"] for _, c in msgs[f"/uav{i}/controller"]][:len(sps)] == layer[:, i].tolist()
 
 
 @pytest.mark.e2e

@@ -30,7 +30,6 @@ Shapes: own (n, 4); sensed states (m, 4) owned by bank rows owner (m,).
 
 from __future__ import annotations
 
-import enum
 import functools
 from typing import NamedTuple
 
@@ -38,31 +37,11 @@ import numpy as np
 
 from mfg_autopilot.paper.model import cap_norm
 from mfg_autopilot.safety import kernels as backstop_kernels
+from mfg_autopilot.safety.layers import Layer, counts_by_layer, layer_names
 from mfg_autopilot.safety.params import BackstopParams
 
-__all__ = ["Layer", "counts_by_layer", "cannot_brake_short", "backstop_acc", "apply_backstop", "escape_acc", "cbf_acc", "warm_up"]
-
-
-class Layer(enum.IntFlag):
-    """Which of the default controllers' safety layers made a row's command this step (one bit each; 0: none acted, the
-    nominal command flew). A row's bits name the layers whose output is in the command it sent: an escape replaces
-    the half-plane pushes and a crowded row's barrier filter replaces them too, so those rows carry that one bit (plus
-    LAST_CBF where the last layer filtered the result). Recorded per UAV and step by the simulator (``backstop_layer``,
-    docs/formats.md)."""
-
-    PLANNED = 1     # the planned vehicles' reciprocal half-plane push (backstop_acc over the planned entries)
-    ESCAPE = 2      # escape_acc: a sampled swerve from vehicles off the plan (and the yield, and the gap escape)
-    CROWD_CBF = 4   # cbf_acc for a crowded row (most of what it senses is off the plan)
-    LAST_CBF = 8    # cbf_acc as the last layer over the other commands (BackstopParams.cbf_last_layer)
-    GAP = 16        # the gap push (BackstopParams.gap_push)
-    PUSH = 32       # the crowded rows' half-plane push (when crowd_cbf is off)
-
-
-def counts_by_layer(bits: np.ndarray) -> dict[str, int]:
-    """How many entries of ``bits`` (any shape of Layer bits, e.g. the (T, N) ``backstop_layer``) carry each layer, by
-    its lower-case name (metrics.json's ``safety_interventions_by_layer``). A row filtered twice counts under both."""
-    bits = np.asarray(bits, dtype=np.uint8)
-    return {layer.name.lower(): int(np.count_nonzero(bits & np.uint8(layer))) for layer in Layer}
+__all__ = ["Layer", "layer_names", "counts_by_layer", "cannot_brake_short", "backstop_acc", "apply_backstop", "escape_acc",
+           "cbf_acc", "warm_up"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams,
