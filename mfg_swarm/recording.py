@@ -118,6 +118,17 @@ def backstop_intervals(active: np.ndarray) -> list[tuple[int, int, int]]:
 
 # ------------------------------------------------------------------------------------------ reading
 
+def _from_step_records(logs: list[ControllerRecord], key: str, T: int, dtype) -> np.ndarray:
+    """(T, N) one key of the controllers' step records (controller i's record of step k at [k, i]; 0 where a record
+    lacks the key or a step has no record)."""
+    out = np.zeros((T, len(logs)), dtype=dtype)
+    for i, lg in enumerate(logs):
+        for rec in lg.steps:
+            if 0 <= rec.get("step", -1) < T:
+                out[rec["step"], i] = rec.get(key, 0)
+    return out
+
+
 def _load_json(path: Path, what: str) -> dict:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -298,21 +309,14 @@ def load_run(run_dir: str | Path, *, mission=None, datum: GeodeticPoint | None =
         for i, lg in enumerate(logs):      # the slot each controller flew to (as mfg-swarm run reads it)
             if lg.end is not None and lg.end.get("destination_m") is not None:
                 traj.dest_m[i] = np.asarray(lg.end["destination_m"], dtype=float)[:2]
+    T = traj.acc_m_s2.shape[0]
     backstop = traj.extra.get("backstop_active")
     if backstop is None and logs:
-        backstop = np.zeros((traj.acc_m_s2.shape[0], n), dtype=bool)
-        for i, lg in enumerate(logs):
-            for rec in lg.steps:
-                if 0 <= rec.get("step", -1) < backstop.shape[0]:
-                    backstop[rec["step"], i] = bool(rec.get("backstop_active", False))
+        backstop = _from_step_records(logs, "backstop_active", T, bool)
     layer = traj.extra.get("backstop_layer")
     if layer is None and any("backstop_layer" in rec for lg in logs for rec in lg.steps):
         # (the default controllers log it; a folder without trajectories.npz rebuilds it from their logs)
-        layer = np.zeros((traj.acc_m_s2.shape[0], n), dtype=np.uint8)
-        for i, lg in enumerate(logs):
-            for rec in lg.steps:
-                if 0 <= rec.get("step", -1) < layer.shape[0]:
-                    layer[rec["step"], i] = int(rec.get("backstop_layer", 0))
+        layer = _from_step_records(logs, "backstop_layer", T, np.uint8)
     if mission is not None and mission.n == n:
         alt = mission.arrays()["altitude_agl_m"]
     else:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from functools import partial
 
 import numpy as np
 import pytest
@@ -163,6 +164,14 @@ def test_without_the_filter_the_nominal_commands_collide():
     assert dmin < 0.1
 
 
+def _gust_flight(family: str, n: int, seed: int, steps: int, fail: bool, bp: BackstopParams) -> dict:
+    """metrics.json of a --gust flight of the default preset with backstop bp (fail: vehicle 10 failing into Hold at
+    20.15 s, inside the gust)."""
+    cfg = SimConfig(scenario=make_scenario(family, n), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
+                    seed=seed, steps=steps, gust=GustParams(), **({"fail_vehicle": 10, "fail_at_s": 20.15} if fail else {}))
+    return simulate(cfg, progress=False)[1]
+
+
 @pytest.mark.parametrize("seed", [120, 123])
 def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     # crossing --gust N = 137: the gust (20-25 s) blows a group just as it departs (~21 s); nearly every UAV falls 2-5 m
@@ -170,9 +179,7 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     # summed half-plane push these two seeds (of 30 flown, 3 collided) had 1 collided pair each (0.027 m, 0.077 m).
     # Elsewhere (docs/benchmarks.md, twentieth round): N = 213 seed 95, 1 pair (0.015 m) with the push, 0.384 m with the
     # filter, whose constants were not tuned on any of these flights
-    def fly(bp):
-        return simulate(SimConfig(scenario=make_scenario("crossing", 137), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                                  seed=seed, steps=120, gust=GustParams()), progress=False)[1]
+    fly = partial(_gust_flight, "crossing", 137, seed, 120, False)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
@@ -198,9 +205,7 @@ def test_a_vehicle_failed_in_hold_inside_a_gust_gets_the_full_constraint():
     # crossing --gust N = 300 seed 76 with vehicle 10 failing into Hold at 20.15 s, inside the gust: UAV 12's row is
     # crowded and the failed vehicle, hovering where the plan flies at 4 m/s, takes no half of the constraint. With the
     # half (the reciprocal share) UAV 12 braked 1.4 m/s^2 at 0.57 m closing at 1.4 m/s and met it (0.078 m, 1 pair)
-    def fly(bp):
-        return simulate(SimConfig(scenario=make_scenario("crossing", 300), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                                  seed=76, steps=60, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+    fly = partial(_gust_flight, "crossing", 300, 76, 60, True)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     # the full share alone (without BackstopParams.own_disturbance and escape_hover_in_crowd, which came later; the
@@ -239,9 +244,7 @@ def test_every_other_row_takes_its_half_as_the_last_layer():
     # With the filter as the last layer of the rows that sense a vehicle off the plan (BackstopParams.cbf_last_layer; an
     # option, off by default: docs/benchmarks.md, twenty-first round) the flight keeps 0.2 m (measured 0.230 m over the
     # whole 400-step flight)
-    def fly(bp):
-        return simulate(SimConfig(scenario=make_scenario("crossing", 1000), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                                  seed=77, steps=56, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+    fly = partial(_gust_flight, "crossing", 1000, 77, 56, True)
     # (without BackstopParams.own_disturbance, which came later and flies it without a pair by itself:
     # tests/test_own_disturbance.py, nor escape_hover_in_crowd, later still)
     base = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False)
@@ -259,9 +262,7 @@ def test_a_crowded_row_still_escapes_a_vehicle_hovering_in_the_stream():
     # 1.7 m: braking at 2 m/s^2 after one period needs 1.8 m). The default keeps the escape against a vehicle hovering where
     # the plan flies for a row at stream speed that cannot brake short of it (BackstopParams.escape_hover_in_crowd and its
     # gates): 0.220 m over 400 steps
-    def fly(bp):
-        return simulate(SimConfig(scenario=make_scenario("paper", 300), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                                  seed=76, steps=60, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+    fly = partial(_gust_flight, "paper", 300, 76, 60, True)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
@@ -273,9 +274,7 @@ def test_a_crowded_row_still_escapes_a_vehicle_hovering_in_the_stream():
 def test_the_hover_escape_in_a_crowd_on_flights_it_was_not_written_for(family, n, seed, pair):
     # the other two failed-vehicle encounters of the twenty-second session's sweep (a crowded row braking at the failed
     # vehicle at 3-4 m/s closing from 3.4-3.8 m: its braking distance is 4 m), which the gates were not tuned on
-    def fly(bp):
-        return simulate(SimConfig(scenario=make_scenario(family, n), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                                  seed=seed, steps=62, gust=GustParams(), fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+    fly = partial(_gust_flight, family, n, seed, 62, True)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.15, m["min_separation_m"]
@@ -287,9 +286,7 @@ def test_the_hover_escape_in_a_crowd_leaves_a_slow_departure_to_the_filter():
     # crossing --gust N = 137 seed 117 (no failure): the gust pins a group at its departure, its UAVs hover 5 m behind
     # their particles where the plan already flies. Ungated, the hover escape fired in the crowded rows there and UAVs
     # 115 / 124 swerved into each other (0.114 m); with the gates (row speed > 2 m/s, cannot brake short) it does not
-    def fly(bp):
-        return simulate(SimConfig(scenario=make_scenario("crossing", 137), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                                  seed=117, steps=60, gust=GustParams()), progress=False)[1]
+    fly = partial(_gust_flight, "crossing", 137, 117, 60, False)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.25, m["min_separation_m"]
     ungated = fly(dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd_min_speed_m_s=0.0,
