@@ -187,6 +187,25 @@ class _DefaultBase:
         the entries already off the plan; own (n, 4): the rows' own states."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
+    def _entry_prev_v(self, sn: Neighbours, step: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each sensed entry's velocity at the previous sample and whether it is known ((m, 2), (m,) bool), or None
+        (HJB_d: not kept)."""
+        return None
+
+    def _may_brake(self, sn: Neighbours, prev_v: tuple[np.ndarray, np.ndarray], hover: np.ndarray,
+                   own_dist: np.ndarray | None) -> np.ndarray:
+        """(m,) bool: the sensed entries the escape also predicts braking to a stop (BackstopParams.escape_brake_hypothesis
+        "measured"): hovering (hover (m,)), not seen at the previous sample, or braking along their previous velocity
+        by more than escape_brake_hypothesis_min_m_s2 beyond the observing row's own disturbance (own_dist (n, 2), the
+        disturbance observer's estimate, the common mode; None: none known). prev_v: _entry_prev_v's."""
+        pv, known = prev_v
+        acc = (sn.states[:, 2:4] - pv) / self.preset.dt_s
+        if own_dist is not None:
+            acc = acc - own_dist[sn.owner]
+        speed = np.maximum(np.linalg.norm(pv, axis=1), 1e-9)
+        along = (acc[:, 0] * pv[:, 0] + acc[:, 1] * pv[:, 1]) / speed
+        return hover | ~known | (along < -self.preset.backstop.escape_brake_hypothesis_min_m_s2)
+
     def _cbf_share(self, sn: Neighbours, rows: np.ndarray) -> np.ndarray | None:
         """(m,) each sensed entry's share of its barrier constraint (backstop.cbf_acc), or None: crowd_cbf_share for
         every one (HJB_d; MFG gives all of it against a vehicle hovering in the plan's stream)."""
@@ -238,6 +257,8 @@ class _DefaultBase:
         od = (shrink_m_s2(self._own_dist, bp.own_disturbance_deadband_m_s2)
               if bp.own_disturbance and self._own_dist is not None else None)
         sn = self._not_heard(_sensed(obs), obs.neighbours)
+        # the sensed vehicles' velocities one sample ago, read before the braking test records this step's
+        prev_v = self._entry_prev_v(sn, obs.step) if bp.escape_brake_hypothesis == "measured" else None
         unplanned = self._unplanned(sn.states, sn.ids)
         unplanned |= self._unplanned_by_braking(sn, obs.step, unplanned, own)
         if self._detour_state is not None and np.any(unplanned):
@@ -347,8 +368,10 @@ class _DefaultBase:
                 # the lane side replaces keep-right (escape_side_over_keep_right)
                 hover_threat = threat & hover
                 threat = threat | gap | yl
+                # which threats may also be braking to a stop (BackstopParams.escape_brake_hypothesis; None: every one)
+                bh = self._may_brake(sn, prev_v, hover, self._own_dist) if prev_v is not None else None
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od)
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, bh)
             if np.any(push) and bp.crowd_cbf:
                 # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
                 # summed push left UAVs that chased their particles through a blown crowd to cross each other
@@ -1202,6 +1225,24 @@ class DefaultMFGController(_DefaultBase):
         sid, spart = self._plan_ids
         at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
         return np.where(sid[at] == ids, spart[at], -1)
+
+    def _entry_prev_v(self, sn: Neighbours, step: int) -> tuple[np.ndarray, np.ndarray] | None:
+        m = sn.states.shape[0]
+        if sn.ids is None or self._seen_v is None or self.plan is None or self._plan_ids is None:
+            return None
+        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
+        pv = np.zeros((m, 2))
+        ok = part >= 0
+        seen = np.zeros(m, dtype=bool)
+        seen[ok] = self._seen_k[part[ok]] == step - 1
+        pv[seen] = self._seen_v[part[seen]]
+        known = seen.copy()
+        full = self._cutoff_hist.get(step - 1)
+        if full is not None and full.shape[0] == self.plan.N:
+            f = ok & ~seen
+            pv[f] = full[part[f], 2:4]
+            known |= f
+        return pv, known
 
     def _unplanned_by_braking(self, sn: Neighbours, step: int, unplanned: np.ndarray, own: np.ndarray) -> np.ndarray:
         """(m,) bool: sensed vehicles that brake against their own plan particle by more than plan_mismatch_brake_m_s2

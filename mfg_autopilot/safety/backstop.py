@@ -131,7 +131,7 @@ def _directions(k: int) -> np.ndarray:
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
                side_pref: np.ndarray | None = None, hover: np.ndarray | None = None,
-               own_dist_m_s2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               own_dist_m_s2: np.ndarray | None = None, brake_hyp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -163,6 +163,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     row takes the cheapest such candidate (its cost over those second phases); otherwise the cheapest by the cost alone.
     own_dist_m_s2 (n, 2), optional: each row's own disturbance (what it flies beyond its command: a gust), held over the
     horizon in every prediction of the own vehicle, the trigger's included (BackstopParams.own_disturbance).
+    brake_hyp (m,) bool, optional: the threat entries that get the braking hypothesis; the others are predicted at
+    constant velocity only (None: every threat; BackstopParams.escape_brake_hypothesis).
     Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
@@ -178,7 +180,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s),
         np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float),
         np.zeros(sensed_states.shape[0], dtype=bool) if hover is None else np.ascontiguousarray(hover, dtype=bool),
-        np.zeros((n, 2)) if own_dist_m_s2 is None else np.ascontiguousarray(own_dist_m_s2, dtype=float))
+        np.zeros((n, 2)) if own_dist_m_s2 is None else np.ascontiguousarray(own_dist_m_s2, dtype=float),
+        np.ones(sensed_states.shape[0], dtype=bool) if brake_hyp is None else np.ascontiguousarray(brake_hyp, dtype=bool))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

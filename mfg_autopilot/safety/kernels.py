@@ -242,12 +242,14 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist):
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
                 keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, trigger_coast, side_over_keep_right,
-                hard_fraction, side_pref, hover, dist):
+                hard_fraction, side_pref, hover, dist, brake_hyp):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
     least one threat. Same operations, in the same order, as the numpy code (module docstring). hover (m,) bool: the
     hovering threat entries; with trigger_coast a row is also active if coasting (a = 0 over the horizon) brings such an
     entry below its trigger; with side_over_keep_right such an entry has no keep-right term in a row with a side. dist
-    (n, 2): each row's own disturbance (the acceleration beyond its command it flies: a gust), in every prediction."""
+    (n, 2): each row's own disturbance (the acceleration beyond its command it flies: a gust), in every prediction.
+    brake_hyp (m,) bool: the threats that may also brake to a stop (the others' braking track is their constant-velocity
+    one, so the minimum over both hypotheses is that one's)."""
     n = own.shape[0]
     m = sensed_states.shape[0]
     T1 = t.shape[0]
@@ -267,6 +269,11 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         if j < 0:
             continue
         ti[j] = e
+        if not brake_hyp[e]:
+            for s in range(T1):
+                back[j, s, 0] = 0.0
+                back[j, s, 1] = 0.0
+            continue
         wx = sensed_states[e, 2]
         wy = sensed_states[e, 3]
         wn = math.sqrt(wx * wx + wy * wy)
