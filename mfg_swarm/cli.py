@@ -57,6 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--hold-jerk", type=float, default=4.0, metavar="J",
                      help="fault: the failed vehicle's Hold changes its acceleration at most J m/s^3 (PX4 MPC_JERK_AUTO; "
                           "default 4); 0: it brakes at the airframe's limit from the first instant (pessimistic)")
+    sim.add_argument("--hold-model", choices=("pd", "px4"), default="pd",
+                     help="fault: the failed vehicle's Hold: pd = a saturated PD towards the braking stop, jerk-limited "
+                          "at --hold-jerk (default); px4 = PX4's trajectory (PositionSmoothing, MPC_JERK_AUTO = "
+                          "--hold-jerk) tracked by PX4's position/velocity loops, as the mock's --hold-model px4")
     sim.add_argument("--gust", action="store_true", help="fault: a wind gust beyond V_o (mfg_swarm.sim.GustParams: 1 m/s^2 +-50 %%, t = 20-25 s)")
     sim.add_argument("--record", action="store_true",
                      help="also write flight.mcap (Foxglove: map, 3D scene, plots, events; docs/formats.md)")
@@ -213,7 +217,8 @@ def _cmd_sim(args) -> int:
     cfg = SimConfig(scenario=_scenario(args), mode=args.mode, preset=preset_by_name(args.preset),
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
                     fail_vehicle=_one_or_tuple(args.fail_vehicle), fail_at_s=_one_or_tuple(args.fail_at) or 0.0,
-                    hold_jerk_m_s3=args.hold_jerk, gust=GustParams() if args.gust else None)
+                    hold_jerk_m_s3=args.hold_jerk, gust=GustParams() if args.gust else None,
+                    hold_model=args.hold_model)
     traj, metrics = simulate(cfg, progress=False if args.no_progress else None)
     args.out.mkdir(parents=True, exist_ok=True)
     write_npz_atomic(args.out / "trajectories.npz", traj.arrays())

@@ -21,7 +21,10 @@ Fault events (``SimConfig``):
   ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step, as the mock vehicle flies Hold). 0: no jerk
   limit, the PD computed at t_k and held over the step, braking at the airframe's limit from the first instant
   (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare; failure times on the
-  control grid only). It still broadcasts
+  control grid only). ``hold_model`` "px4" (``sim --hold-model px4``): instead of the PD and the jerk limit, PX4's
+  trajectory (``PositionSmoothing``, MPC_JERK_AUTO = ``hold_jerk_m_s3``) tracked by PX4's position and velocity loops
+  (``mock_vehicle.smoothing.Px4AutoXY``), activated at the failure from its state and the acceleration it flew, every
+  physics sub-step, as the mock flies it with ``--hold-model px4``. It still broadcasts
   (HJB_d hears it) and is still seen by proximity sensors. Several failed vehicles: ``fail_vehicle`` a tuple of
   ids, ``fail_at_s`` one time for all or a tuple of one per vehicle (``sim --fail-vehicle K1 --fail-vehicle K2
   [--fail-at T1 --fail-at T2]``); each holds from its own failure on.
@@ -49,6 +52,7 @@ from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.presets import MODES, make_controller
 from mfg_autopilot.safety.layers import counts_by_layer
 from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams, braking_stop_m, hold_acc_m_s2, jerk_limited_m_s2
+from mock_vehicle.smoothing import AutoParams, Px4AutoXY
 from mock_vehicle.proximity import quantise_sensed_states, sensed_pairs, sensed_rows
 
 from .metrics import arrivals, separation_guarantee
@@ -103,6 +107,7 @@ class SimConfig:
     fail_at_s: float | tuple[float, ...] = 0.0          # ... from this time on (one for all, or one per vehicle)
     hold_jerk_m_s3: float = 4.0       # its Hold's jerk limit (PX4 MPC_JERK_AUTO); 0: none
     gust: GustParams | None = None
+    hold_model: str = "pd"            # its Hold: "pd" (PD + jerk limit) or "px4" (PX4's trajectory and position loop)
 
     @property
     def failures(self) -> tuple[tuple[int, float], ...]:
@@ -139,6 +144,11 @@ class SimConfig:
                              f"{self.fail_at_s}")
         if not np.all(np.isfinite(ts) & (ts >= 0)):
             raise ValueError(f"fail_at_s must be finite and >= 0, got {self.fail_at_s}")
+        if self.hold_model not in ("pd", "px4"):
+            raise ValueError(f"hold_model must be pd or px4, got {self.hold_model!r}")
+        if self.hold_model == "px4" and not 1.0 <= self.hold_jerk_m_s3 <= 80.0:
+            raise ValueError(f"hold_model px4 takes hold_jerk_m_s3 as MPC_JERK_AUTO, in [1, 80] m/s^3, got "
+                             f"{self.hold_jerk_m_s3}")
         if not (np.isfinite(self.hold_jerk_m_s3) and self.hold_jerk_m_s3 >= 0):
             raise ValueError(f"hold_jerk_m_s3 must be finite and >= 0 (0: no jerk limit), got {self.hold_jerk_m_s3}")
         if self.fail_vehicle is not None and self.hold_jerk_m_s3 == 0:
@@ -152,7 +162,8 @@ class SimConfig:
 
 def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold_pos_m: np.ndarray,
                     hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float,
-                    first_sub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    first_sub: np.ndarray | None = None,
+                    models: list[Px4AutoXY] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One control step with vehicle(s) K (an index, or an index array: then hold_pos_m and hold_acc_m_s2_prev are
     (len(K), 2)) in Hold, every physics sub-step apart (as the mock vehicle flies it): their acceleration is the Hold
     PD's on their state then (``hold_acc_m_s2``), jerk-limited from the previous sub-step's (``jerk_limited_m_s2``);
@@ -163,6 +174,10 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
     from the step's start). Before it the vehicle flies its command ``acc_cmd``; at it, its Hold point becomes the
     braking stop ahead of its state then (``braking_stop_m``, replacing its row of hold_pos_m) and its smoothing
     starts from the acceleration it flew (PX4's ``FlightTaskAuto::activate``).
+
+    ``models`` (len(K),): PX4's trajectory and position loop per vehicle (``hold_model`` "px4") instead of the PD and
+    the jerk limit; a model not yet active is activated at the vehicle's first Hold sub-step (its state then, its Hold
+    point, the acceleration it flew), as the mock activates it at the mode switch.
     Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration (len(K), 2); the Hold
     points (len(K), 2))."""
     K = np.atleast_1d(np.asarray(K, dtype=np.int64))
@@ -179,8 +194,15 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
             hold_pos_m[starting] = braking_stop_m(plant.states[K[starting]])
         on = first <= i
         if on.any():
-            target = hold_acc_m_s2(plant.states[K[on]], hold_pos_m[on], plant.params.acc_limit_m_s2)
-            a_k[on] = jerk_limited_m_s2(a_k[on], target, jerk_m_s3, h)
+            if models is None:
+                target = hold_acc_m_s2(plant.states[K[on]], hold_pos_m[on], plant.params.acc_limit_m_s2)
+                a_k[on] = jerk_limited_m_s2(a_k[on], target, jerk_m_s3, h)
+            else:
+                for j in np.flatnonzero(on):
+                    state_j = plant.states[K[j]]
+                    if not models[j].active:
+                        models[j].activate(state_j, hold_pos_m[j], a_k[j])
+                    a_k[j] = models[j].acc_m_s2(state_j, h, plant.params.acc_limit_m_s2)
             acc[K[on]] = a_k[on]
         got = plant.step(acc, h)
         a_k = got[K].copy()            # what the airframe applied (within its limit): also the last flown command
@@ -316,6 +338,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     fail_ids = np.array([K for K, _ in failures], dtype=np.int64)
     holding = np.zeros(len(failures), dtype=bool)                 # failed already
     holds_pos, holds_acc = np.zeros((len(failures), 2)), np.zeros((len(failures), 2))   # Hold point, last acceleration
+    hold_models = ([Px4AutoXY(AutoParams(mpc_jerk_auto_m_s3=cfg.hold_jerk_m_s3)) for _ in failures]
+                   if cfg.hold_model == "px4" else None)
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     h_sub = dt / plant.params.substeps(dt)        # a failure inside a control step begins at a physics sub-step
     backstop_active = np.zeros((T, n), dtype=bool)
@@ -374,7 +398,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             if cfg.hold_jerk_m_s3 > 0:
                 acc_log[k], holds_acc[holding], holds_pos[holding] = _step_with_hold(
                     plant, acc_cmd, dt, Ks, holds_pos[holding], holds_acc[holding], cfg.hold_jerk_m_s3,
-                    first_sub[holding])
+                    first_sub[holding],
+                    None if hold_models is None else [m for m, on in zip(hold_models, holding) if on])
             else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
                 acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[holding], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)
@@ -430,6 +455,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         one = len(failures) == 1        # one failed vehicle: its id and time as numbers, as before
         metrics.update(fail_vehicle=Ks[0] if one else Ks, fail_at_s=failures[0][1] if one else [t for _, t in failures],
                        hold_jerk_m_s3=cfg.hold_jerk_m_s3,
+                       **({"hold_model": cfg.hold_model} if cfg.hold_model != "pd" else {}),
                        failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"]
                                                           if any(K in p for K in Ks)),
                        arrived_fraction_others=float(arrived[others].mean()) if others.any() else None)

@@ -75,6 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "vehicles it senses as ADSB_VEHICLE (docs/proximity.md); off by default")
     p.add_argument("--traffic-rate-hz", type=float, default=d.traffic_rate_hz,
                    help="with --world-url: sensed-traffic rate in real time, re-send rate in lockstep, Hz")
+    p.add_argument("--hold-model", choices=VehicleConfig.HOLD_MODELS, default=d.hold_model,
+                   help="auto modes (Takeoff, Hold, Land), horizontal: pd = a saturated PD towards the Hold point, its "
+                        "acceleration jerk-limited at MPC_JERK_AUTO (default); px4 = PX4's jerk-limited trajectory "
+                        "(PositionSmoothing) tracked by PX4's position/velocity loops (mock_vehicle/smoothing.py)")
     p.add_argument("--tlog", default=None, help="write a MAVLink .tlog of everything sent and received")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
     return p
@@ -127,6 +131,7 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         rates_hz=rates,
         lockstep_resend_hz=args.lockstep_resend_hz,
         traffic_rate_hz=args.traffic_rate_hz,
+        hold_model=args.hold_model,
     )
     onboard = args.onboard_url or f"udpout:127.0.0.1:{14540 + args.instance}"
     urls = [u for u in [onboard, args.gcs_url, *args.extra_url] if u and u.lower() != "none"]

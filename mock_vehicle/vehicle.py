@@ -78,6 +78,7 @@ from .params import ParamTable
 from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, jerk_limited_m_s2, saturate_norm
 from .proximity import traffic_reports
 from .setpoint import SETPOINT_LIMITS, check_setpoint, classify_setpoint  # noqa: F401  (check_setpoint: re-exported)
+from .smoothing import AutoParams, Px4AutoXY
 from .telemetry import FAST_TELEMETRY, TELEMETRY_IDS, TelemetryMixin
 
 __all__ = ["VehicleConfig", "MockVehicle", "RejectLog", "check_setpoint", "SETPOINT_LIMITS", "SIGNED_COMMAND_MESSAGES"]
@@ -125,6 +126,16 @@ class VehicleConfig:
     )
     lockstep_resend_hz: float = 5.0
     traffic_rate_hz: float = 5.0     # proximity sensor (with a world): report/answer rate in real time, re-send rate in lockstep
+    hold_model: str = "pd"
+    """How the auto modes (Takeoff, Hold, Land) move horizontally: "pd" (the default) the saturated PD towards the
+    Hold point, jerk-limited at MPC_JERK_AUTO (``plant.hold_acc_m_s2``, ``plant.jerk_limited_m_s2``); "px4" PX4's
+    trajectory (``PositionSmoothing``) tracked by PX4's position and velocity loops (``smoothing.Px4AutoXY``)."""
+
+    HOLD_MODELS = ("pd", "px4")
+
+    def __post_init__(self) -> None:
+        if self.hold_model not in self.HOLD_MODELS:
+            raise ValueError(f"hold_model must be one of {', '.join(self.HOLD_MODELS)}, got {self.hold_model!r}")
 
     @property
     def system_id(self) -> int:
@@ -212,6 +223,8 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
         self.setpoint: SetPositionTargetLocalNed | None = None
         self._setpoint_flyable = True    # False: PX4's position controller refuses the held setpoint (stop and wait)
         self.applied_acc_m_s2 = np.zeros(2)
+        self._px4_auto: Px4AutoXY | None = None     # hold_model "px4": the auto mode's trajectory and position loop
+        self._px4_auto_key: tuple | None = None     # (mode, Hold point) it was activated for
         self._t0 = clock()
         self._phys_t_s = 0.0  # real time: simulated time integrated so far
         self.step_index = 0  # lockstep: control steps taken
@@ -458,22 +471,39 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
     """PX4 flies these with ``FlightTaskAuto``, whose setpoints come from the jerk-limited ``PositionSmoothing``."""
 
     def _step(self, dt_s: float) -> None:
-        """Advance the horizontal plant by ``dt_s`` (in an auto mode sub-step by sub-step, the acceleration jerk-limited
-        from the one flown before: ``plant.jerk_limited_m_s2``), then the altitude loop."""
+        """Advance the horizontal plant by ``dt_s`` (in an auto mode sub-step by sub-step: with ``hold_model`` "pd" the
+        acceleration jerk-limited from the one flown before, ``plant.jerk_limited_m_s2``; with "px4" PX4's trajectory
+        and position loop, ``smoothing.Px4AutoXY``), then the altitude loop."""
         if self.mode in self.AUTO_MODES:
             jerk, k = self.params["MPC_JERK_AUTO"], self.plant.params.substeps(dt_s)
             for _ in range(k):
                 self._step_horizontal(dt_s / k, jerk)
         else:
+            self._px4_auto_key = None
             self._step_horizontal(dt_s, None)
         self._vertical(dt_s)
 
+    def _px4_auto_acc_m_s2(self, dt_s: float) -> np.ndarray:
+        """hold_model "px4": the auto mode's acceleration over the next ``dt_s`` (1, 2). PX4 constructs a new flight
+        task at the mode switch and activates it from the last setpoint (``FlightTaskAuto::activate``): here when the
+        mode or its Hold point changes (a lift-off re-activates it, as ``reActivate`` does on the ground), from the
+        state and the acceleration flown until then; the last setpoint's position and velocity count as NaN (the
+        controller's offboard setpoints are accelerations), so the vehicle's are used."""
+        key = (self.mode, self.hold_pos_m.tobytes())
+        if self._px4_auto is None or self._px4_auto_key != key:
+            params = AutoParams(mpc_jerk_auto_m_s3=self.params["MPC_JERK_AUTO"], mpc_acc_hor_m_s2=self.params["MPC_ACC_HOR"])
+            self._px4_auto = Px4AutoXY(params)
+            self._px4_auto.activate(self.plant.states[0], self.hold_pos_m, self.applied_acc_m_s2)
+            self._px4_auto_key = key
+        return self._px4_auto.acc_m_s2(self.plant.states[0], dt_s, self.plant.params.acc_limit_m_s2).reshape(1, 2)
+
     def _step_horizontal(self, dt_s: float, jerk_m_s3: float | None) -> None:
-        acc = self._current_acc_m_s2()
+        px4_auto = jerk_m_s3 is not None and self.cfg.hold_model == "px4"
+        acc = self._px4_auto_acc_m_s2(dt_s) if px4_auto else self._current_acc_m_s2()
         if not np.isfinite(acc).all():
             self.rejects.reject("non-finite acceleration", f"{acc}: holding instead")
             acc = hold_acc_m_s2(self.plant.states, self.hold_pos_m.reshape(1, 2), self.plant.params.acc_limit_m_s2)
-        if jerk_m_s3 is not None:
+        if jerk_m_s3 is not None and not px4_auto:
             acc = jerk_limited_m_s2(self.applied_acc_m_s2.reshape(1, 2), acc, jerk_m_s3, dt_s)
         before = self.plant.states.copy()
         self.applied_acc_m_s2 = self.plant.step(acc, dt_s)[0]

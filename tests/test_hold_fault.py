@@ -214,3 +214,66 @@ def test_a_failure_off_the_control_grid_needs_the_jerk_limited_hold():
     for bad in (float("nan"), float("inf")):
         with pytest.raises(ValueError, match="finite and >= 0"):
             sim.SimConfig(scenario=sc, mode="mfg", preset=p, fail_vehicle=1, fail_at_s=bad)
+
+
+def test_the_mock_and_the_simulator_fly_px4s_hold_bit_for_bit_alike():
+    """--hold-model px4: a mock vehicle switched to Hold while flying (wind noise on) and the simulator's failed vehicle
+    (``_step_with_hold`` with a ``Px4AutoXY``) started from the same state, noise stream position, Hold point and last
+    acceleration move bit for bit alike, sub-step by sub-step (the mock: 0.1 s physics ticks; the simulator: 0.5 s
+    control steps of 5 sub-steps)."""
+    import copy
+
+    from mavlink_bridge import PX4_HOLD, CommandLong, Received, acceleration_setpoint
+    from mock_vehicle.smoothing import AutoParams, Px4AutoXY
+    from mock_vehicle.vehicle import MockVehicle, VehicleConfig
+
+    class Clock:
+        t = 1000.0
+
+        def __call__(self):
+            return self.t
+
+    clock = Clock()
+    v = MockVehicle(VehicleConfig(initial_pos_m=(3.0, -2.0), seed=11, hold_model="px4"), lambda m, p: None, clock=clock)
+    v.handle(Received(CommandLong(1, 1, 400, (1.0,) + (0.0,) * 6), 1, 195))
+    for _ in range(60):                                     # 3 s of offboard at (1.5, 0.8) m/s^2, 20 Hz
+        v.handle(Received(acceleration_setpoint(1, 1, (1.5, 0.8, 0.0), 0), 1, 195))
+        if _ == 1:
+            v.handle(Received(CommandLong(1, 1, 176, (1.0, 6.0) + (0.0,) * 5), 1, 195))
+        clock.t += 0.05
+        v.tick()
+    # the simulator's twin: the mock's plant as it is now (state, noise stream position), its last acceleration
+    plant = copy.deepcopy(v.plant)
+    a_prev = v.applied_acc_m_s2.copy()
+    v.handle(Received(CommandLong(1, 1, 176, (1.0, 4.0, 3.0) + (0.0,) * 4), 1, 195))
+    assert v.mode == PX4_HOLD and np.linalg.norm(v.state[2:4]) > 2.0
+    hold = braking_stop_m(plant.states)
+    np.testing.assert_array_equal(hold[0], v.hold_pos_m)
+    model = Px4AutoXY(AutoParams(mpc_jerk_auto_m_s3=4.0))
+    for step in range(20):                                  # 10 s: 20 control steps of 0.5 s
+        _, a_prev, _ = sim._step_with_hold(plant, np.zeros((1, 2)), 0.5, 0, hold, a_prev, 4.0, models=[model])
+        for _ in range(5):
+            clock.t += 0.1
+            v.tick()
+        np.testing.assert_array_equal(plant.states[0], v.state, err_msg=f"step {step}")
+    # and it stopped at the Hold point (within the wind noise)
+    assert np.linalg.norm(v.state[0:2] - hold[0]) < 0.3 and np.linalg.norm(v.state[2:4]) < 0.3
+
+
+def test_a_px4_hold_flight_stops_its_failed_vehicle_near_the_braking_stop():
+    # paper N = 25, vehicle 7 failing at 10.2 s (inside a control step) into PX4's Hold: it stops near the braking stop
+    # ahead of its state at the failure, the other vehicles fly as without the failure until the next sample
+    kw = dict(scenario=make_scenario("paper", 25), mode="mfg", preset=preset_by_name("default"), seed=1, steps=40)
+    free, _ = sim.simulate(sim.SimConfig(**kw), progress=False)
+    px4, m = sim.simulate(sim.SimConfig(fail_vehicle=7, fail_at_s=10.2, hold_model="px4", **kw), progress=False)
+    pd, mp = sim.simulate(sim.SimConfig(fail_vehicle=7, fail_at_s=10.2, **kw), progress=False)
+    assert m["hold_model"] == "px4" and "hold_model" not in mp
+    others = np.arange(25) != 7
+    np.testing.assert_array_equal(px4.pos_m[:21], free.pos_m[:21])
+    np.testing.assert_array_equal(px4.pos_m[21, others], free.pos_m[21, others])
+    assert not np.array_equal(px4.pos_m[21:, 7], pd.pos_m[21:, 7])          # a different Hold
+    assert np.linalg.norm(px4.vel_m_s[-1, 7]) < 0.3
+    with pytest.raises(ValueError, match="hold_model"):
+        sim.SimConfig(fail_vehicle=7, hold_model="lqr", **kw)
+    with pytest.raises(ValueError, match="MPC_JERK_AUTO"):
+        sim.SimConfig(fail_vehicle=7, hold_model="px4", hold_jerk_m_s3=0.0, **kw)

@@ -134,12 +134,12 @@ def test_failsafe_after_com_of_loss_t_and_hold_keeps_position():
     assert np.linalg.norm(v.state[0:2] - hold_at) < 3.0 and np.all(np.isfinite(v.state))
 
 
-def _flying_north_in_offboard(cruise_s: float = 0.0):
+def _flying_north_in_offboard(cruise_s: float = 0.0, **cfg):
     """A vehicle flying north at ~4 m/s in OFFBOARD with no wind noise (the along-track motion after a mode change is
     that mode's alone): (vehicle, clock, north position, north velocity). It accelerates at 2 m/s^2 to the end, or
-    cruises for its last ``cruise_s`` (acceleration 0)."""
+    cruises for its last ``cruise_s`` (acceleration 0). ``cfg``: more VehicleConfig fields."""
     calm = WindParams(mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
-    v, clock, _ = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm)
+    v, clock, _ = make(initial_pos_m=(0.0, 0.0), initial_vel_m_s=(0.0, 0.0), wind=calm, **cfg)
     v.handle(cmd(400, 1))
     stream(v, clock, 2.0, acc=(2.0, 0.0, 0.0))
     v.handle(cmd(176, 1, 6))
@@ -191,6 +191,42 @@ def test_hold_builds_its_braking_up_at_mpc_jerk_auto_from_the_acceleration_flown
     # and a Hold entered at cruise loses less speed in its first 0.5 s than braking at the limit would (1 m/s)
     if cruise_s:
         assert 0.4 <= a_before - acc[5] <= 2.0 and np.mean(acc[1:6]) > -1.3, acc
+
+
+@pytest.mark.parametrize("cruise_s", [0.5, 0.0])
+def test_hold_with_px4s_trajectory_stops_at_the_braking_stop_where_the_pd_hold_overshoots(cruise_s):
+    """--hold-model px4 (mock_vehicle.smoothing.Px4AutoXY) against the default PD: a vehicle at ~4 m/s north, cruising
+    or still accelerating at 2 m/s^2, switched to Hold. Measured: the PD Hold overshoots the braking stop by 0 m
+    cruising and 1.60 m accelerating (then comes back); PX4's trajectory (which drops the last acceleration at
+    activation and plans with MPC_JERK_AUTO, MPC_ACC_HOR) stops within 2 mm of it in both cases."""
+    overshoot = {}
+    for model in ("pd", "px4"):
+        v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=cruise_s, hold_model=model)
+        a_before = float(v.applied_acc_m_s2[0])
+        v.handle(cmd(176, 1, 4, 3))
+        assert v.mode == PX4_HOLD and v.hold_pos_m[0] - x0 == pytest.approx(vx0 * (vx0 / 6.0 + 0.6), rel=1e-6)
+        xs, acc = [], [a_before]
+        for _ in range(300):
+            clock.t += 0.1
+            v.tick()
+            xs.append(float(v.state[0]))
+            acc.append(float(v.applied_acc_m_s2[0]))
+        overshoot[model] = max(xs) - v.hold_pos_m[0]
+        assert abs(xs[-1] - v.hold_pos_m[0]) < 0.01 and abs(v.state[2]) < 0.01, (model, xs[-1], v.hold_pos_m)
+        if model == "px4":
+            # PX4's task is new at the switch: its trajectory drops the acceleration flown before, and the position
+            # loop brakes at once (accelerating at 2 m/s^2 before: the first sub-step's is <= 0; cruising: ~0)
+            assert acc[1] <= 0.0 if a_before > 1.0 else abs(acc[1]) < 0.01, (a_before, acc[:4])
+            assert np.all(np.diff(xs) >= -0.005) and max(xs) - xs[-1] < 0.005   # settles back by < 5 mm at most
+    if cruise_s:
+        assert overshoot["pd"] == pytest.approx(0.0, abs=0.01) and abs(overshoot["px4"]) < 0.002, overshoot
+    else:
+        assert overshoot["pd"] == pytest.approx(1.60, abs=0.03) and abs(overshoot["px4"]) < 0.002, overshoot
+
+
+def test_hold_model_is_checked():
+    with pytest.raises(ValueError, match="hold_model"):
+        VehicleConfig(hold_model="lqr")
 
 
 def test_position_mode_in_flight_locks_where_px4s_braking_setpoint_stops():
