@@ -164,6 +164,11 @@ def test_without_the_filter_the_nominal_commands_collide():
     assert dmin < 0.1
 
 
+# the backstop as it was before the escape's braking hypothesis was measured (twenty-fourth session): the counterfactual
+# flights of the mechanisms that came before it isolate them on the flights they were measured on
+THREAT = dataclasses.replace(DEFAULT.backstop, escape_brake_hypothesis="threat")
+
+
 def _gust_flight(family: str, n: int, seed: int, steps: int, fail: bool, bp: BackstopParams) -> dict:
     """metrics.json of a --gust flight of the default preset with backstop bp (fail: vehicle 10 failing into Hold at
     20.15 s, inside the gust)."""
@@ -187,7 +192,8 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     # the filter alone (without the own disturbance in the backstop's predictions, BackstopParams.own_disturbance, and
     # the hover escape in a crowd, escape_hover_in_crowd, which came later and also fly these two seeds without a pair)
     # is what separates them from the push
-    alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False)
+    alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
+                                escape_brake_hypothesis="threat")
     assert fly(alone)["collision_pairs"] == 0
     off = fly(dataclasses.replace(alone, crowd_cbf=False))
     assert off["collision_pairs"] >= 1
@@ -210,7 +216,8 @@ def test_a_vehicle_failed_in_hold_inside_a_gust_gets_the_full_constraint():
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     # the full share alone (without BackstopParams.own_disturbance and escape_hover_in_crowd, which came later; the
     # first also flies it without a pair)
-    alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False)
+    alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
+                                escape_brake_hypothesis="threat")
     assert fly(alone)["collision_pairs"] == 0
     off = fly(dataclasses.replace(alone, crowd_cbf_hover_full_share=False))
     assert [10, 12] in off["collided_pairs_list"], off["collided_pairs_list"]
@@ -247,7 +254,8 @@ def test_every_other_row_takes_its_half_as_the_last_layer():
     fly = partial(_gust_flight, "crossing", 1000, 77, 56, True)
     # (without BackstopParams.own_disturbance, which came later and flies it without a pair by itself:
     # tests/test_own_disturbance.py, nor escape_hover_in_crowd, later still)
-    base = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False)
+    base = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
+                                escape_brake_hypothesis="threat")
     m = fly(dataclasses.replace(base, cbf_last_layer=True))
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
@@ -266,7 +274,8 @@ def test_a_crowded_row_still_escapes_a_vehicle_hovering_in_the_stream():
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
-    off = fly(dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd=False))
+    # (both with every off-plan vehicle predicted braking to a stop, as when the option was measured: escape_brake_hypothesis)
+    off = fly(dataclasses.replace(THREAT, escape_hover_in_crowd=False))
     assert [10, 48] in off["collided_pairs_list"], off["collided_pairs_list"]
 
 
@@ -278,7 +287,8 @@ def test_the_hover_escape_in_a_crowd_on_flights_it_was_not_written_for(family, n
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.15, m["min_separation_m"]
-    off = fly(dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd=False))
+    # (both with every off-plan vehicle predicted braking to a stop, as when the option was measured: escape_brake_hypothesis)
+    off = fly(dataclasses.replace(THREAT, escape_hover_in_crowd=False))
     assert pair in off["collided_pairs_list"], off["collided_pairs_list"]
 
 
@@ -289,7 +299,7 @@ def test_the_hover_escape_in_a_crowd_leaves_a_slow_departure_to_the_filter():
     fly = partial(_gust_flight, "crossing", 137, 117, 60, False)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.25, m["min_separation_m"]
-    ungated = fly(dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd_min_speed_m_s=0.0,
+    ungated = fly(dataclasses.replace(THREAT, escape_hover_in_crowd_min_speed_m_s=0.0,
                                       escape_hover_in_crowd_brake_gate=False))
     assert ungated["min_separation_m"] < 0.15, ungated["min_separation_m"]
 

@@ -94,8 +94,8 @@ def test_a_failure_inside_a_gust_is_passed_with_the_own_gust_in_the_backstop(fam
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.15, m["min_separation_m"]
     # the own gust alone: with and without it, both without the hover escape in a crowd (escape_hover_in_crowd, which
-    # came later)
-    on = dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd=False)
+    # came later) and with every off-plan vehicle predicted braking to a stop (escape_brake_hypothesis, later still)
+    on = dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd=False, escape_brake_hypothesis="threat")
     m = fly(on)
     assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.15, (m["collided_pairs_list"], m["min_separation_m"])
     off = fly(dataclasses.replace(on, own_disturbance=False))
