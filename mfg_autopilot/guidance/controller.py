@@ -187,9 +187,15 @@ class _DefaultBase:
         the entries already off the plan; own (n, 4): the rows' own states."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
-    def _entry_prev_v(self, sn: Neighbours, step: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Each sensed entry's velocity at the previous sample and whether it is known ((m, 2), (m,) bool), or None
-        (HJB_d: not kept)."""
+    def _seen_snapshot(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A copy of the velocities the braking test last recorded per plan particle and their steps, taken before it
+        records this step's (_entry_prev_v reads it), or None (HJB_d: not kept; MFG: nothing recorded yet)."""
+        return None
+
+    def _entry_prev_v(self, sn: Neighbours, step: int,
+                      seen: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each sensed entry's velocity at the previous sample and whether it is known ((m, 2), (m,) bool), from
+        ``seen`` (_seen_snapshot's), or None (no ids)."""
         return None
 
     def _may_brake(self, sn: Neighbours, prev_v: tuple[np.ndarray, np.ndarray], hover: np.ndarray,
@@ -257,8 +263,9 @@ class _DefaultBase:
         od = (shrink_m_s2(self._own_dist, bp.own_disturbance_deadband_m_s2)
               if bp.own_disturbance and self._own_dist is not None else None)
         sn = self._not_heard(_sensed(obs), obs.neighbours)
-        # the sensed vehicles' velocities one sample ago, read before the braking test records this step's
-        prev_v = self._entry_prev_v(sn, obs.step) if bp.escape_brake_hypothesis == "measured" else None
+        # the sensed vehicles' velocities one sample ago (the escape's braking hypothesis), kept before the braking test
+        # records this step's
+        seen = self._seen_snapshot() if bp.escape_brake_hypothesis == "measured" else None
         unplanned = self._unplanned(sn.states, sn.ids)
         unplanned |= self._unplanned_by_braking(sn, obs.step, unplanned, own)
         if self._detour_state is not None and np.any(unplanned):
@@ -369,6 +376,7 @@ class _DefaultBase:
                 hover_threat = threat & hover
                 threat = threat | gap | yl
                 # which threats may also be braking to a stop (BackstopParams.escape_brake_hypothesis; None: every one)
+                prev_v = self._entry_prev_v(sn, obs.step, seen) if seen is not None else None
                 bh = self._may_brake(sn, prev_v, hover, self._own_dist) if prev_v is not None else None
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
                                         self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, bh)
@@ -1226,20 +1234,27 @@ class DefaultMFGController(_DefaultBase):
         at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
         return np.where(sid[at] == ids, spart[at], -1)
 
-    def _entry_prev_v(self, sn: Neighbours, step: int) -> tuple[np.ndarray, np.ndarray] | None:
-        m = sn.states.shape[0]
-        if sn.ids is None or self._seen_v is None or self.plan is None or self._plan_ids is None:
+    def _seen_snapshot(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if self._seen_v is None or self.plan is None or self._plan_ids is None:
             return None
+        return self._seen_v.copy(), self._seen_k.copy()
+
+    def _entry_prev_v(self, sn: Neighbours, step: int,
+                      seen: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+        m = sn.states.shape[0]
+        if sn.ids is None:
+            return None
+        seen_v, seen_k = seen
         part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
         pv = np.zeros((m, 2))
         ok = part >= 0
-        seen = np.zeros(m, dtype=bool)
-        seen[ok] = self._seen_k[part[ok]] == step - 1
-        pv[seen] = self._seen_v[part[seen]]
-        known = seen.copy()
+        was = np.zeros(m, dtype=bool)
+        was[ok] = seen_k[part[ok]] == step - 1
+        pv[was] = seen_v[part[was]]
+        known = was.copy()
         full = self._cutoff_hist.get(step - 1)
         if full is not None and full.shape[0] == self.plan.N:
-            f = ok & ~seen
+            f = ok & ~was
             pv[f] = full[part[f], 2:4]
             known |= f
         return pv, known
