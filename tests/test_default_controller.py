@@ -480,8 +480,10 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     # eleventh session's trigger by the spacing now and lane side over keep-right, which are off by default; nor the
     # nineteenth session's safety-first escape, which alone keeps it clear; nor the twentieth's barrier filter for
     # crowded rows: with it on and every rule above off, the UAVs settling into the slots around the hovering vehicle
-    # collide among themselves instead)
+    # collide among themselves instead; and with every off-plan vehicle predicted braking to a stop, as before the
+    # twenty-fourth session's measured braking hypothesis)
     off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
+                                                                        escape_brake_hypothesis="threat",
                                                                         escape_yield=False, gap_push=False,
                                                                         push_flow_reach=False,
                                                                         escape_hard_fraction=0.0, crowd_cbf=False),
@@ -742,9 +744,11 @@ def test_a_hovering_vehicle_off_the_plan_is_kept_clear_by_the_spacing_flown_now_
     import mfg_autopilot.guidance.controller as ctl
     seen = {}
 
-    def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, hover=None, own_dist=None):
+    def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, hover=None, own_dist=None,
+            brake_hyp=None):
         seen.update(states=states, owner=owner, threat=threat, trig=trig, clear=clear, hover=hover)
-        return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, hover, own_dist)
+        return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, hover, own_dist,
+                          brake_hyp=brake_hyp)
 
     monkeypatch.setattr(ctl, "escape_acc", spy)
     for now in (True, False):

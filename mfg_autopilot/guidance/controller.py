@@ -379,7 +379,7 @@ class _DefaultBase:
                 prev_v = self._entry_prev_v(sn, obs.step, seen) if seen is not None else None
                 bh = self._may_brake(sn, prev_v, hover, self._own_dist) if prev_v is not None else None
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, bh)
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, brake_hyp=bh)
             if np.any(push) and bp.crowd_cbf:
                 # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
                 # summed push left UAVs that chased their particles through a blown crowd to cross each other
