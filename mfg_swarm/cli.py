@@ -56,11 +56,13 @@ def build_parser() -> argparse.ArgumentParser:
                           "physics sub-step (a real failure does not wait for the next sample)")
     sim.add_argument("--hold-jerk", type=float, default=4.0, metavar="J",
                      help="fault: the failed vehicle's Hold changes its acceleration at most J m/s^3 (PX4 MPC_JERK_AUTO; "
-                          "default 4); 0: it brakes at the airframe's limit from the first instant (pessimistic)")
-    sim.add_argument("--hold-model", choices=("pd", "px4"), default="pd",
-                     help="fault: the failed vehicle's Hold: pd = a saturated PD towards the braking stop, jerk-limited "
-                          "at --hold-jerk (default); px4 = PX4's trajectory (PositionSmoothing, MPC_JERK_AUTO = "
-                          "--hold-jerk) tracked by PX4's position/velocity loops, as the mock's --hold-model px4")
+                          "default 4); 0 (with --hold-model pd): it brakes at the airframe's limit from the first "
+                          "instant (pessimistic)")
+    sim.add_argument("--hold-model", choices=("px4", "pd"), default="px4",
+                     help="fault: the failed vehicle's Hold: px4 = PX4's trajectory (PositionSmoothing, "
+                          "MPC_JERK_AUTO = --hold-jerk) tracked by PX4's position/velocity loops, as the mock flies it "
+                          "(default); pd = a saturated PD towards the braking stop, jerk-limited at --hold-jerk (the "
+                          "model before PX4's was ported; --hold-jerk 0 needs it)")
     sim.add_argument("--gust", action="store_true", help="fault: a wind gust beyond V_o (mfg_swarm.sim.GustParams: 1 m/s^2 +-50 %%, t = 20-25 s)")
     sim.add_argument("--record", action="store_true",
                      help="also write flight.mcap (Foxglove: map, 3D scene, plots, events; docs/formats.md)")

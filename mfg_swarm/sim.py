@@ -107,7 +107,7 @@ class SimConfig:
     fail_at_s: float | tuple[float, ...] = 0.0          # ... from this time on (one for all, or one per vehicle)
     hold_jerk_m_s3: float = 4.0       # its Hold's jerk limit (PX4 MPC_JERK_AUTO); 0: none
     gust: GustParams | None = None
-    hold_model: str = "pd"            # its Hold: "pd" (PD + jerk limit) or "px4" (PX4's trajectory and position loop)
+    hold_model: str = "px4"           # its Hold: "px4" (PX4's trajectory and position loop) or "pd" (PD + jerk limit)
 
     @property
     def failures(self) -> tuple[tuple[int, float], ...]:
@@ -148,7 +148,9 @@ class SimConfig:
             raise ValueError(f"hold_model must be pd or px4, got {self.hold_model!r}")
         if self.hold_model == "px4" and not 1.0 <= self.hold_jerk_m_s3 <= 80.0:
             raise ValueError(f"hold_model px4 takes hold_jerk_m_s3 as MPC_JERK_AUTO, in [1, 80] m/s^3, got "
-                             f"{self.hold_jerk_m_s3}")
+                             f"{self.hold_jerk_m_s3}" + ("; the abrupt Hold (0: no jerk limit) is the PD's: "
+                                                         "hold_model='pd' (sim --hold-model pd)"
+                                                         if self.hold_jerk_m_s3 == 0 else ""))
         if not (np.isfinite(self.hold_jerk_m_s3) and self.hold_jerk_m_s3 >= 0):
             raise ValueError(f"hold_jerk_m_s3 must be finite and >= 0 (0: no jerk limit), got {self.hold_jerk_m_s3}")
         if self.fail_vehicle is not None and self.hold_jerk_m_s3 == 0:
@@ -455,7 +457,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
         one = len(failures) == 1        # one failed vehicle: its id and time as numbers, as before
         metrics.update(fail_vehicle=Ks[0] if one else Ks, fail_at_s=failures[0][1] if one else [t for _, t in failures],
                        hold_jerk_m_s3=cfg.hold_jerk_m_s3,
-                       **({"hold_model": cfg.hold_model} if cfg.hold_model != "pd" else {}),
+                       hold_model=cfg.hold_model,
                        failed_vehicle_collision_pairs=sum(1 for p in metrics["collided_pairs_list"]
                                                           if any(K in p for K in Ks)),
                        arrived_fraction_others=float(arrived[others].mean()) if others.any() else None)

@@ -76,9 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--traffic-rate-hz", type=float, default=d.traffic_rate_hz,
                    help="with --world-url: sensed-traffic rate in real time, re-send rate in lockstep, Hz")
     p.add_argument("--hold-model", choices=VehicleConfig.HOLD_MODELS, default=d.hold_model,
-                   help="auto modes (Takeoff, Hold, Land), horizontal: pd = a saturated PD towards the Hold point, its "
-                        "acceleration jerk-limited at MPC_JERK_AUTO (default); px4 = PX4's jerk-limited trajectory "
-                        "(PositionSmoothing) tracked by PX4's position/velocity loops (mock_vehicle/smoothing.py)")
+                   help="auto modes (Takeoff, Hold, Land), horizontal: px4 = PX4's jerk-limited trajectory "
+                        "(PositionSmoothing) tracked by PX4's position/velocity loops (mock_vehicle/smoothing.py; "
+                        "default); pd = a saturated PD towards the Hold point, its acceleration jerk-limited at "
+                        "MPC_JERK_AUTO")
     p.add_argument("--tlog", default=None, help="write a MAVLink .tlog of everything sent and received")
     p.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ...")
     return p

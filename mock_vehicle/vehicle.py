@@ -126,10 +126,11 @@ class VehicleConfig:
     )
     lockstep_resend_hz: float = 5.0
     traffic_rate_hz: float = 5.0     # proximity sensor (with a world): report/answer rate in real time, re-send rate in lockstep
-    hold_model: str = "pd"
-    """How the auto modes (Takeoff, Hold, Land) move horizontally: "pd" (the default) the saturated PD towards the
-    Hold point, jerk-limited at MPC_JERK_AUTO (``plant.hold_acc_m_s2``, ``plant.jerk_limited_m_s2``); "px4" PX4's
-    trajectory (``PositionSmoothing``) tracked by PX4's position and velocity loops (``smoothing.Px4AutoXY``)."""
+    hold_model: str = "px4"
+    """How the auto modes (Takeoff, Hold, Land) move horizontally: "px4" (the default) PX4's trajectory
+    (``PositionSmoothing``) tracked by PX4's position and velocity loops (``smoothing.Px4AutoXY``); "pd" the saturated
+    PD towards the Hold point, jerk-limited at MPC_JERK_AUTO (``plant.hold_acc_m_s2``, ``plant.jerk_limited_m_s2``),
+    the mock's model before PX4's was ported."""
 
     HOLD_MODELS = ("pd", "px4")
 
