@@ -102,7 +102,8 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     """The escape's choice of first-phase command per active row: (a_1 (r, 2), chosen (r,) bool).
 
     rel (m', T + 1, 2): constant-velocity tracks relative to the own coasting vehicle; rel_b (m_b, T + 1, 2) the
-    braking ones, entry e's at b_index[e] (-1: not a threat); e_row (m',) the entry's active row; wgt, clear (m',);
+    braking ones, entry e's at b_index[e] (-1: not a threat, or a threat without the braking hypothesis); e_row (m',)
+    the entry's active row; wgt, clear (m',);
     conflict (m',) bool and left (m', 2): the keep-right term; alpha, beta (T + 1,): the own displacement
     alpha a_1 + beta a_2; t_seg (T,) the segments' end times; cand_fixed (C - 1, 2): the candidates after a_nom;
     a_nom_r, v_hat (r, 2). keep_right_den = 0.5 t[-1]^2 a_max, a_max2 = a_max^2 (as the numpy code computes them).
@@ -291,13 +292,18 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb, dist)
     for j in range(n_thr):
         o = owner[ti[j]]
-        d1, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
-        d2, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
-        dn = _min(d1, d2)
+        # (a threat without the braking hypothesis has its braking track equal to its constant-velocity one: skipped)
+        bh = brake_hyp[ti[j]]
+        dn, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
+        if bh:
+            d2, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
+            dn = _min(dn, d2)
         if trigger_coast and hover[ti[j]]:
             d3, _ = _segment_min_one(rel_t, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
-            d4, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
-            dn = _min(dn, _min(d3, d4))
+            dn = _min(dn, d3)
+            if bh:
+                d4, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
+                dn = _min(dn, d4)
         if dn < trigger_m[ti[j]]:
             active[o] = True
     r = 0
@@ -351,9 +357,10 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         left[q, 1] = -usx / _max(un, 1e-12)
         dn, _ = _segment_min_one(rel, q, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
         if threat[e]:
-            b_index[q] = nb
-            db, _ = _segment_min_one(rel_b, nb, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
-            dn = _min(dn, db)
+            if brake_hyp[e]:            # else its braking track is its constant-velocity one: b_index -1, not evaluated
+                b_index[q] = nb
+                db, _ = _segment_min_one(rel_b, nb, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
+                dn = _min(dn, db)
             nb += 1
         conflict[q] = (dn < clear[q]) and (un > u_noise_m_s)
         if side_over_keep_right and hover[e] and (side_pref[o, 0] != 0.0 or side_pref[o, 1] != 0.0):
