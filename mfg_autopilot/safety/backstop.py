@@ -237,6 +237,8 @@ def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner
     share (m,), optional, per entry instead (1 for a vehicle that does not take its half: one hovering in Hold).
     own_dist_m_s2 (n, 2), optional: each row's own disturbance d_i, which its command must also make up for, p . (a_i +
     d_i) >= share B_ij (BackstopParams.own_disturbance; the neighbour's is its own share to answer).
+    Inside the safe distance (d <= D_s: h is undefined) B_ij is clamped to >= 0 (crowd_cbf_inside_no_approach): the row
+    accelerates no closer, p . (a_i + d_i) >= 0, whether the pair is opening or closing.
     The command is the one nearest a_nom with |a| <= a_max_m_s2 that meets every constraint of the row (at most
     crowd_cbf_max_constraints, the most demanding; a constraint with B / 2 <= -a_max holds for every command), or, if
     none does, the one that misses the most violated constraint least. Solved exactly over the candidates where a 2-D
@@ -257,7 +259,8 @@ def cbf_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner
                                      float(a_max_m_s2), float(bp.crowd_cbf_alpha_m_s2), float(bp.crowd_cbf_gamma),
                                      float(safe_m), share, int(bp.crowd_cbf_max_constraints),
                                      _cbf_disc(), np.zeros((own.shape[0], 2)) if own_dist_m_s2 is None
-                                     else np.ascontiguousarray(own_dist_m_s2, dtype=float))
+                                     else np.ascontiguousarray(own_dist_m_s2, dtype=float),
+                                     bool(bp.crowd_cbf_inside_no_approach))
 
 
 def warm_up() -> None:

@@ -950,11 +950,13 @@ def _cbf_circle(nx, ny, c, a_max, ax, ay, phx, phy, rhs, K, lim2, best):
 
 
 @njit(cache=True)
-def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha, gamma, ds, share, k_max, disc, own_dist):
+def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha, gamma, ds, share, k_max, disc, own_dist,
+             inside_no_approach):
     """backstop.cbf_acc (its docstring): the filtered command per row of ``rows`` and whether it differs from a_nom.
     order / starts / ends: the sensed entries of row rows[q] are order[starts[q]:ends[q]]; share (m,): each entry's
     share of its constraint; disc (S, 2): unit-disc samples; own_dist (n, 2): each row's own disturbance, which the
-    command's share must also make up for (ph . (a + dist) >= rhs)."""
+    command's share must also make up for (ph . (a + dist) >= rhs); inside_no_approach: inside ds the constraint's
+    B is at least 0 (BackstopParams.crowd_cbf_inside_no_approach)."""
     r = rows.shape[0]
     out = np.empty((r, 2))
     active = np.zeros(r, dtype=np.bool_)
@@ -984,11 +986,14 @@ def cbf_rows(own, a_nom, sensed_states, order, starts, ends, rows, a_max, alpha,
             ny = dy / dist
             rdot = nx * vx + ny * vy
             gap = dist - ds
-            if gap < 1e-6:
+            inside = gap < 1e-6
+            if inside:
                 gap = 1e-6
             root = math.sqrt(4.0 * alpha * gap)
             h = root + rdot
             b = -gamma * h * h * h - (vx * vx + vy * vy) / dist + rdot * rdot / dist - 2.0 * alpha * rdot / root
+            if inside and inside_no_approach and b < 0.0:
+                b = 0.0             # h is undefined inside ds: accelerate no closer, opening or not
             b = share[e] * b - (nx * own_dist[i, 0] + ny * own_dist[i, 1])
             if not b > -a_max:
                 continue

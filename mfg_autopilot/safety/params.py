@@ -160,6 +160,12 @@ class BackstopParams:
     crowd_cbf_share: float = 0.5
     crowd_cbf_hover_full_share: bool = True   # ... but all of it against a vehicle hovering in the plan's stream (_cbf_share)
     crowd_cbf_max_constraints: int = 16
+    # ... and inside the safe distance (d <= D_s, where the barrier's root is 0 and h is undefined) a constraint never
+    # lets the row accelerate towards that vehicle (B_ij clamped to >= 0): a pair inside D_s that opened for a moment
+    # had B_ij ~ -2 alpha rdot / 0 (no constraint), the row's nominal command drove it back in, the next sample found it
+    # closing and pushed out: in and out every period until they met (merge --gust N = 300 s86, UAV 38 and the failed
+    # vehicle 0.3 m apart, 0.065 m; twenty-fifth session). Off: the former filter
+    crowd_cbf_inside_no_approach: bool = True
     # ... and as the last layer of every other row that senses a vehicle off the plan (not hovering) and does not escape,
     # over its command, against every sensed vehicle but one hovering off the plan (guidance.controller._backstop_rows;
     # twenty-first session). Off: a failure inside a gust collided less (42 runs: 5 -> 3), but the 0.5 m grid without
