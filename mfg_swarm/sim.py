@@ -13,18 +13,17 @@ One loop per control step t_k = k dt:
 Fault events (``SimConfig``):
 - ``fail_vehicle`` K, ``fail_at_s`` T: from the first physics sub-step instant >= T (a control instant
   t_k = T when T is one; else inside the control step: a real failure does not wait for the next sample),
-  vehicle K stops following its controller and holds (PX4 Hold: ``mock_vehicle.plant.hold_acc_m_s2`` towards
-  the braking stop ahead of its state at that instant, ``braking_stop_m``, as PX4's navigator sets it).
-  Until then in that step it flies the command it was given at t_k. Its acceleration
-  changes from the one it flew last (before the failure: its last command, within the airframe's limit) at most
-  ``hold_jerk_m_s3`` (PX4's MPC_JERK_AUTO, 4 m/s^3:
-  ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step, as the mock vehicle flies Hold). 0: no jerk
-  limit, the PD computed at t_k and held over the step, braking at the airframe's limit from the first instant
-  (the simulator's Hold before PX4's jerk limit was modelled: pessimistic, kept to compare; failure times on the
-  control grid only). ``hold_model`` "px4" (``sim --hold-model px4``): instead of the PD and the jerk limit, PX4's
-  trajectory (``PositionSmoothing``, MPC_JERK_AUTO = ``hold_jerk_m_s3``) tracked by PX4's position and velocity loops
+  vehicle K stops following its controller and holds (PX4 Hold), towards the braking stop ahead of its state at
+  that instant (``braking_stop_m``, as PX4's navigator sets it). Until then in that step it flies the command it was
+  given at t_k. ``hold_model`` "px4" (the default; ``sim --hold-model px4``): PX4's trajectory (``PositionSmoothing``,
+  MPC_JERK_AUTO = ``hold_jerk_m_s3``) tracked by PX4's position and velocity loops
   (``mock_vehicle.smoothing.Px4AutoXY``), activated at the failure from its state and the acceleration it flew, every
-  physics sub-step, as the mock flies it with ``--hold-model px4``. It still broadcasts
+  physics sub-step, as the mock flies Hold. "pd" (the model until the twenty-fifth session): a saturated PD
+  (``mock_vehicle.plant.hold_acc_m_s2``) whose acceleration changes from the one it flew last (before the failure:
+  its last command, within the airframe's limit) at most ``hold_jerk_m_s3`` (4 m/s^3:
+  ``mock_vehicle.plant.jerk_limited_m_s2``, every physics sub-step); with ``hold_jerk_m_s3`` 0 no jerk limit, the PD
+  computed at t_k and held over the step, braking at the airframe's limit from the first instant (pessimistic, kept
+  to compare; failure times on the control grid only). It still broadcasts
   (HJB_d hears it) and is still seen by proximity sensors. Several failed vehicles: ``fail_vehicle`` a tuple of
   ids, ``fail_at_s`` one time for all or a tuple of one per vehicle (``sim --fail-vehicle K1 --fail-vehicle K2
   [--fail-at T1 --fail-at T2]``); each holds from its own failure on.

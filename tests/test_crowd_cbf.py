@@ -164,17 +164,33 @@ def test_without_the_filter_the_nominal_commands_collide():
     assert dmin < 0.1
 
 
-# the backstop as it was before the escape's braking hypothesis was measured (twenty-fourth session): the counterfactual
-# flights of the mechanisms that came before it isolate them on the flights they were measured on
-THREAT = dataclasses.replace(DEFAULT.backstop, escape_brake_hypothesis="threat")
+# the backstop as it was before the escape's braking hypothesis was measured (twenty-fourth session) and before the
+# filter's clamp inside the safe distance (twenty-fifth): the counterfactual flights of the mechanisms that came before
+# them isolate them on the flights they were measured on
+THREAT = dataclasses.replace(DEFAULT.backstop, escape_brake_hypothesis="threat",
+                             crowd_cbf_inside_no_approach=False)
 
 
-def _gust_flight(family: str, n: int, seed: int, steps: int, fail: bool, bp: BackstopParams) -> dict:
-    """metrics.json of a --gust flight of the default preset with backstop bp (fail: vehicle 10 failing into Hold at
-    20.15 s, inside the gust)."""
-    cfg = SimConfig(scenario=make_scenario(family, n), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
-                    seed=seed, steps=steps, gust=GustParams(), **({"fail_vehicle": 10, "fail_at_s": 20.15} if fail else {}))
+# the failed vehicle's Hold the failure flights below were measured with: the PD Hold, the simulator's default until
+# the twenty-fifth session. Each mechanism's counterfactual is flown with it (a different Hold is a different flight);
+# each test also flies the default backstop with the default Hold, PX4's trajectory (hold_model "px4")
+MEASURED_HOLD = "pd"
+
+
+def _gust_flight(family: str, n: int, seed: int, steps: int, fail: bool, bp: BackstopParams,
+                 hold: str = MEASURED_HOLD) -> dict:
+    """metrics.json of a --gust flight of the default preset with backstop bp (fail: vehicle 10 failing at 20.15 s,
+    inside the gust, into the Hold ``hold``)."""
+    cfg = SimConfig(scenario=make_scenario(family, n, seed), mode="mfg", preset=dataclasses.replace(DEFAULT, backstop=bp),
+                    seed=seed, steps=steps, gust=GustParams(),
+                    **({"fail_vehicle": 10, "fail_at_s": 20.15, "hold_model": hold} if fail else {}))
     return simulate(cfg, progress=False)[1]
+
+
+def _default_hold_flight(family: str, n: int, seed: int, steps: int) -> dict:
+    """The failure flight with everything default: the default backstop, PX4's Hold."""
+    assert SimConfig(scenario=make_scenario(family, 4), mode="mfg", preset=DEFAULT).hold_model == "px4"
+    return _gust_flight(family, n, seed, steps, True, DEFAULT.backstop, "px4")
 
 
 @pytest.mark.parametrize("seed", [120, 123])
@@ -193,7 +209,8 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     # the hover escape in a crowd, escape_hover_in_crowd, which came later and also fly these two seeds without a pair)
     # is what separates them from the push
     alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
-                                escape_brake_hypothesis="threat")
+                                escape_brake_hypothesis="threat",
+                                crowd_cbf_inside_no_approach=False)
     assert fly(alone)["collision_pairs"] == 0
     off = fly(dataclasses.replace(alone, crowd_cbf=False))
     assert off["collision_pairs"] >= 1
@@ -214,10 +231,13 @@ def test_a_vehicle_failed_in_hold_inside_a_gust_gets_the_full_constraint():
     fly = partial(_gust_flight, "crossing", 300, 76, 60, True)
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    m = _default_hold_flight("crossing", 300, 76, 60)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     # the full share alone (without BackstopParams.own_disturbance and escape_hover_in_crowd, which came later; the
     # first also flies it without a pair)
     alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
-                                escape_brake_hypothesis="threat")
+                                escape_brake_hypothesis="threat",
+                                crowd_cbf_inside_no_approach=False)
     assert fly(alone)["collision_pairs"] == 0
     off = fly(dataclasses.replace(alone, crowd_cbf_hover_full_share=False))
     assert [10, 12] in off["collided_pairs_list"], off["collided_pairs_list"]
@@ -255,7 +275,8 @@ def test_every_other_row_takes_its_half_as_the_last_layer():
     # (without BackstopParams.own_disturbance, which came later and flies it without a pair by itself:
     # tests/test_own_disturbance.py, nor escape_hover_in_crowd, later still)
     base = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
-                                escape_brake_hypothesis="threat")
+                                escape_brake_hypothesis="threat",
+                                crowd_cbf_inside_no_approach=False)
     m = fly(dataclasses.replace(base, cbf_last_layer=True))
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
@@ -271,9 +292,9 @@ def test_a_crowded_row_still_escapes_a_vehicle_hovering_in_the_stream():
     # the plan flies for a row at stream speed that cannot brake short of it (BackstopParams.escape_hover_in_crowd and its
     # gates): 0.220 m over 400 steps
     fly = partial(_gust_flight, "paper", 300, 76, 60, True)
-    m = fly(DEFAULT.backstop)
-    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
-    assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
+    for m in (fly(DEFAULT.backstop), _default_hold_flight("paper", 300, 76, 60)):
+        assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+        assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
     # (both with every off-plan vehicle predicted braking to a stop, as when the option was measured: escape_brake_hypothesis)
     off = fly(dataclasses.replace(THREAT, escape_hover_in_crowd=False))
     assert [10, 48] in off["collided_pairs_list"], off["collided_pairs_list"]
@@ -287,6 +308,9 @@ def test_the_hover_escape_in_a_crowd_on_flights_it_was_not_written_for(family, n
     m = fly(DEFAULT.backstop)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.15, m["min_separation_m"]
+    # with PX4's Hold (the default) no pair either (circle: 0.115 m, the failed vehicle drifting back after the gust)
+    m = _default_hold_flight(family, n, seed, 62)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     # (both with every off-plan vehicle predicted braking to a stop, as when the option was measured: escape_brake_hypothesis)
     off = fly(dataclasses.replace(THREAT, escape_hover_in_crowd=False))
     assert pair in off["collided_pairs_list"], off["collided_pairs_list"]
@@ -325,3 +349,47 @@ def test_cannot_brake_short_is_the_braking_distance_after_one_period():
 def test_the_hover_escape_gate_is_validated():
     with pytest.raises(ValueError, match="escape_hover_in_crowd_min_speed_m_s"):
         dataclasses.replace(DEFAULT.backstop, escape_hover_in_crowd_min_speed_m_s=-1.0)
+
+
+def test_inside_the_safe_distance_the_filter_accelerates_no_closer():
+    # a pair 0.25 m apart, inside D_s = 0.3 m, where the barrier is undefined; the row's nominal command is the airframe's
+    # 2 m/s^2 straight at the other vehicle (p = (-1, 0): accelerating towards it is a_x > 0)
+    other = np.array([[0.25, 0.0, 0.0, 0.0]])
+    a_nom = np.array([[A_MAX, 0.0]])
+    for opening_m_s in (0.3, 0.0, -0.3):
+        own = np.array([[0.0, 0.0, -opening_m_s, 0.0]])
+        a, act = cbf_acc(own, a_nom, other, np.zeros(1, dtype=int), np.array([0]), BP, 0.3, A_MAX)
+        # then, opening or closing, the command does not accelerate towards it
+        assert act[0] and a[0, 0] <= 1e-9, (opening_m_s, a)
+    # before (crowd_cbf_inside_no_approach off), a pair opening inside D_s had no constraint: the nominal went through
+    own = np.array([[0.0, 0.0, -0.3, 0.0]])
+    a, act = cbf_acc(own, a_nom, other, np.zeros(1, dtype=int), np.array([0]),
+                     dataclasses.replace(BP, crowd_cbf_inside_no_approach=False), 0.3, A_MAX)
+    assert not act[0] and np.array_equal(a, a_nom)
+
+
+def test_inside_the_safe_distance_a_pair_that_opens_is_not_driven_back_in():
+    # one vehicle hovering (it does not filter), the other 0.25 m from it (inside D_s = 0.3 m), opening at 0.2 m/s, its
+    # nominal command 2 m/s^2 at the hovering one, filtered every 0.01 s with the full share: it never comes closer
+    s = np.array([[0.0, 0.0, -0.2, 0.1]])
+    obstacle = np.array([[0.25, 0.0, 0.0, 0.0]])
+    d0 = dmin = 0.25
+    for _ in range(300):
+        d = obstacle[0, 0:2] - s[0, 0:2]
+        a, _ = cbf_acc(s, (d / np.linalg.norm(d) * A_MAX)[None], obstacle, np.zeros(1, dtype=int), np.array([0]), BP, 0.3,
+                       A_MAX, np.array([1.0]))
+        s[0, 0:2] += s[0, 2:4] * 0.01 + 0.5 * a[0] * 1e-4
+        s[0, 2:4] += a[0] * 0.01
+        dmin = min(dmin, float(np.linalg.norm(obstacle[0, 0:2] - s[0, 0:2])))
+    assert dmin >= d0 - 1e-9, dmin
+
+
+def test_a_row_inside_the_safe_distance_of_a_failed_vehicle_stops_driving_into_it():
+    # merge --gust N = 300 seed 86, vehicle 10 failing into PX4's Hold (the default) at 20.15 s: UAV 38's crowded row,
+    # 0.3 m from the failed vehicle (inside the filter's D_s = 0.35 m), was let through towards it whenever the pair
+    # opened for a sample and pushed out when it closed, and met it at 0.065 m at 28 s. With the clamp: no pair
+    fly = partial(_gust_flight, "merge", 300, 86, 60, True, hold="px4")
+    m = fly(DEFAULT.backstop)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf_inside_no_approach=False))
+    assert [10, 38] in off["collided_pairs_list"], off["collided_pairs_list"]

@@ -150,9 +150,10 @@ def _flying_north_in_offboard(cruise_s: float = 0.0, **cfg):
     return v, clock, x0, vx0
 
 
-def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
-    # given a vehicle cruising north at ~4 m/s in OFFBOARD
-    v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=0.5)
+@pytest.mark.parametrize("model,back_m", [("px4", 0.005), ("pd", 0.001)])
+def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back(model, back_m):
+    # given a vehicle cruising north at ~4 m/s in OFFBOARD, with PX4's Hold (the default) or the PD Hold
+    v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=0.5, hold_model=model)
     # when it is switched to Hold (MAV_CMD_DO_SET_MODE, AUTO.LOITER)
     v.handle(cmd(176, 1, 4, 3))
     assert v.mode == PX4_HOLD
@@ -160,19 +161,21 @@ def test_hold_in_flight_targets_px4s_braking_stop_and_never_flies_back():
     # the 0.6 s delay term: |v| (|v| / 6 + 0.6) along the course), not the position where the hold began ...
     assert v.hold_pos_m[0] - x0 == pytest.approx(vx0 * (vx0 / 6.0 + 0.6), rel=1e-6)
     assert abs(v.hold_pos_m[1] - v.state[1]) < 1e-6
-    # ... and the vehicle brakes to it without overshooting and flying back against its former course
+    # ... and the vehicle brakes to it without overshooting and flying back against its former course (PX4's position
+    # loop settles back by a few millimetres)
     xs = []
     for _ in range(300):
         clock.t += 0.1
         v.tick()
         xs.append(float(v.state[0]))
-    assert np.all(np.diff(xs) >= -1e-3) and abs(xs[-1] - v.hold_pos_m[0]) < 0.3, (max(xs), xs[-1], v.hold_pos_m)
+    assert np.all(np.diff(xs) >= -back_m) and abs(xs[-1] - v.hold_pos_m[0]) < 0.3, (max(xs), xs[-1], v.hold_pos_m)
 
 
 @pytest.mark.parametrize("cruise_s", [0.5, 0.0])
 def test_hold_builds_its_braking_up_at_mpc_jerk_auto_from_the_acceleration_flown_before(cruise_s):
-    # given a vehicle flying north at ~4 m/s in OFFBOARD, cruising (acceleration 0) or still accelerating at 2 m/s^2
-    v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=cruise_s)
+    # given a vehicle with the PD Hold (hold_model "pd": the model before PX4's trajectory was ported, whose acceleration
+    # ramps from the one flown before) flying north at ~4 m/s in OFFBOARD, cruising or still accelerating at 2 m/s^2
+    v, clock, x0, vx0 = _flying_north_in_offboard(cruise_s=cruise_s, hold_model="pd")
     a_before = float(v.applied_acc_m_s2[0])
     # when it is switched to Hold, and the physics advances sub-step by sub-step (0.1 s)
     v.handle(cmd(176, 1, 4, 3))
@@ -195,7 +198,7 @@ def test_hold_builds_its_braking_up_at_mpc_jerk_auto_from_the_acceleration_flown
 
 @pytest.mark.parametrize("cruise_s", [0.5, 0.0])
 def test_hold_with_px4s_trajectory_stops_at_the_braking_stop_where_the_pd_hold_overshoots(cruise_s):
-    """--hold-model px4 (mock_vehicle.smoothing.Px4AutoXY) against the default PD: a vehicle at ~4 m/s north, cruising
+    """--hold-model px4 (mock_vehicle.smoothing.Px4AutoXY, the default) against the PD Hold: a vehicle at ~4 m/s north, cruising
     or still accelerating at 2 m/s^2, switched to Hold. Measured: the PD Hold overshoots the braking stop by 0 m
     cruising and 1.60 m accelerating (then comes back); PX4's trajectory (which drops the last acceleration at
     activation and plans with MPC_JERK_AUTO, MPC_ACC_HOR) stops within 2 mm of it in both cases."""
