@@ -217,6 +217,11 @@ class _DefaultBase:
         every one (HJB_d; MFG gives all of it against a vehicle hovering in the plan's stream)."""
         return None
 
+    def _hover_latched(self, sn: Neighbours, step: int, unplanned: np.ndarray, hover: np.ndarray) -> np.ndarray:
+        """(m,) bool: ``hover`` and the off-plan (``unplanned``) entries that hovered within the last hover_latch_s and
+        are slower than hover_latch_max_speed_m_s (MFG, by id; HJB_d: ``hover``, nothing is off its plan)."""
+        return hover
+
     def _in_stream(self, states: np.ndarray) -> np.ndarray:
         """(m,) bool: the sensed entries where the plan flies (MFG: the nearest particle faster than
         unplanned_flow_min_m_s; HJB_d: nowhere known)."""
@@ -327,6 +332,8 @@ class _DefaultBase:
             e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
             # a hovering vehicle off the plan (failed in Hold, drifting): the rules of BackstopParams.hover_max_speed_m_s
             hover = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
+            # ... or hovered lately and is still off the plan (BackstopParams.hover_latch_s)
+            hover = self._hover_latched(sn, obs.step, unplanned, hover)
             sp_now = self._spacing_now_m()
             if bp.unplanned_hover_clear_now:
                 # its clearance by the spacing flown now
@@ -478,6 +485,7 @@ class DefaultMFGController(_DefaultBase):
         # states by step (sensed_cutoff_m), the previous sample of a vehicle the reach-limited delivery left out
         self._seen_v: np.ndarray | None = None
         self._seen_k: np.ndarray | None = None
+        self._hover_k: np.ndarray | None = None     # per plan particle: the last step it hovered off the plan
         self._own_v_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' own velocities then)
         self._own_a_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' commands then): act()
         self._plan_s_hist: dict[int, np.ndarray] = {}
@@ -503,6 +511,7 @@ class DefaultMFGController(_DefaultBase):
         self._plan_tree, self._flow_tree, self._side_mem = None, None, None
         self._prepared, self._pending = None, None
         self._seen_v, self._seen_k, self._own_v_prev, self._own_a_prev = None, None, None, None
+        self._hover_k = None
         self._dob, self._own_dist = None, None
         self._plan_s_hist, self._cutoff_hist = {}, {}
         # a new flight: nothing of an earlier one (a controller reused for another t = 0 exchange decides as a new one;
@@ -1233,6 +1242,32 @@ class DefaultMFGController(_DefaultBase):
         sid, spart = self._plan_ids
         at = np.minimum(np.searchsorted(sid, ids), sid.size - 1)
         return np.where(sid[at] == ids, spart[at], -1)
+
+    def _hover_latched(self, sn: Neighbours, step: int, unplanned: np.ndarray, hover: np.ndarray) -> np.ndarray:
+        bp = self.preset.backstop
+        if bp.hover_latch_s <= 0 or sn.ids is None or self.plan is None or self._plan_ids is None:
+            return hover
+        if self._hover_k is None or self._hover_k.shape[0] != self.plan.N:
+            self._hover_k = np.full(self.plan.N, -(1 << 40), dtype=np.int64)      # the last step each hovered
+        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
+        ok = part >= 0
+        last = np.full(part.shape[0], -(1 << 40), dtype=np.int64)
+        last[ok] = self._hover_k[part[ok]]
+        k_latch = int(round(bp.hover_latch_s / self.preset.dt_s))
+        v2 = sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2
+        latch = unplanned & ok & (step - last <= k_latch) & (v2 < bp.hover_latch_max_speed_m_s ** 2)
+        if np.any(latch):
+            # not one that flies towards its own plan particle: a healthy UAV recovering its plan after the gust pinned
+            # it (crossing --gust N = 137 s125, no failure: latched, it kept the hover rules while it accelerated back
+            # into the stream, 0.433 -> 0.198 m; with this gate 0.352 m)
+            to_p = np.zeros((part.shape[0], 2))
+            to_p[ok] = self.plan.states[part[ok], 0:2] - sn.states[ok, 0:2]
+            dist = np.maximum(np.hypot(to_p[:, 0], to_p[:, 1]), 1e-9)
+            towards = (sn.states[:, 2] * to_p[:, 0] + sn.states[:, 3] * to_p[:, 1]) / dist
+            latch &= towards < bp.hover_latch_max_towards_plan * np.sqrt(v2)
+        out = hover | latch
+        self._hover_k[part[ok & out]] = step
+        return out
 
     def _seen_snapshot(self) -> tuple[np.ndarray, np.ndarray] | None:
         if self._seen_v is None or self.plan is None or self._plan_ids is None:

@@ -117,6 +117,17 @@ class BackstopParams:
     escape_side_commit: float = 1.0
     escape_side_memory: bool = True
     hover_max_speed_m_s: float = 1.0
+    # MFG: ... and a vehicle that counted as hovering off the plan within the last hover_latch_s (by its id) still counts
+    # while it stays off the plan and slower than hover_latch_max_speed_m_s (each such step renews it; 0 s: off). A
+    # vehicle failed into Hold fights a gust with its position loop's integrator and, when the gust ends, flies back
+    # towards its Hold point at up to 1-3 m/s (PX4's Hold over 133 failure-inside-a-gust runs: 90th percentile 1.8 m/s,
+    # largest 3.13): past hover_max_speed_m_s it lost the hover rules mid-encounter (swap4 --gust N = 1,000 s78: UAV 17's
+    # crowded row stopped escaping it and met it at 0.093 m; twenty-fifth session, docs/default_controller.md)
+    # ... unless it flies towards its own plan particle (the cosine between its velocity and the direction to its
+    # particle is hover_latch_max_towards_plan or more): a healthy UAV the gust pinned, recovering its plan
+    hover_latch_s: float = 5.0
+    hover_latch_max_speed_m_s: float = 3.0
+    hover_latch_max_towards_plan: float = 0.5
     unplanned_hover_clear_now: bool = True
     unplanned_hover_trigger_now: bool = False
     escape_side_over_keep_right: bool = False
@@ -217,7 +228,11 @@ class BackstopParams:
                                ("own_disturbance_deadband_m_s2", self.own_disturbance_deadband_m_s2 >= 0, ">= 0"),
                                ("escape_hover_in_crowd_min_speed_m_s", self.escape_hover_in_crowd_min_speed_m_s >= 0,
                                 ">= 0"),
-                               ("escape_brake_hypothesis_min_m_s2", self.escape_brake_hypothesis_min_m_s2 >= 0, ">= 0")):
+                               ("escape_brake_hypothesis_min_m_s2", self.escape_brake_hypothesis_min_m_s2 >= 0, ">= 0"),
+                               ("hover_latch_s", self.hover_latch_s >= 0, ">= 0"),
+                               ("hover_latch_max_speed_m_s", self.hover_latch_max_speed_m_s >= 0, ">= 0"),
+                               ("hover_latch_max_towards_plan", -1 <= self.hover_latch_max_towards_plan <= 1,
+                                "in [-1, 1]")):
             if not ok:
                 raise ValueError(f"BackstopParams.{name} must be {what}, got {getattr(self, name)!r}")
 
