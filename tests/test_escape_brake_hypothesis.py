@@ -59,5 +59,5 @@ def test_two_escaping_neighbours_in_a_gust_do_not_swerve_into_each_other():
         assert m["collision_pairs"] == 0, m["collided_pairs_list"]
         assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
     every = fly(dataclasses.replace(DEFAULT.backstop, escape_brake_hypothesis="threat",
-                                    crowd_cbf_inside_no_approach=False))
+                                    crowd_cbf_inside_no_approach=False, hover_latch_s=0.0))
     assert every["collision_pairs"] >= 1
