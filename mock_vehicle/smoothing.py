@@ -49,7 +49,11 @@ What the mock's model needs and what it leaves out (the mock is 2-D horizontal w
   first ``updateTraj(dt > 0)`` ends in its zero-acceleration phase: the trajectory drops the acceleration it was
   reset to (the last setpoint's) at once, and its acceleration feed-forward starts from 0 (then rises at most
   MPC_JERK_AUTO). Ported as is (``first_update_dt_s``, 1 us; 0 would keep the reset acceleration: the difference
-  is measured in docs/default_controller.md).
+  is measured in docs/default_controller.md). It matters only between two flight tasks: from Offboard, where
+  ``start_flight_task`` runs none, ``switchTask`` hands ``activate`` an empty (NaN) setpoint, so the reset
+  acceleration is 0 anyway.
+- Not ported: ``PositionControl`` keeps its velocity integrator across mode switches (reset only while landed; frozen
+  in Offboard, whose velocity setpoint is NaN); each activation here starts it from 0.
 - The position controller. What the mock's plant (eq. 9) needs to be tracked under wind is the velocity PID with its
   integrator (the drag c0 (v - v_o) is an unmodelled disturbance to PX4's loop, as wind is; the integrator removes
   its steady-state error), so ``_positionControl`` and the horizontal part of ``_velocityControl`` are ported whole.
