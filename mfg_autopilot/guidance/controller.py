@@ -1249,24 +1249,25 @@ class DefaultMFGController(_DefaultBase):
             return hover
         if self._hover_k is None or self._hover_k.shape[0] != self.plan.N:
             self._hover_k = np.full(self.plan.N, -(1 << 40), dtype=np.int64)      # the last step each hovered
-        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
-        ok = part >= 0
-        last = np.full(part.shape[0], -(1 << 40), dtype=np.int64)
-        last[ok] = self._hover_k[part[ok]]
+        # only the off-plan entries can latch or renew (hover is off the plan too): after a gust a bank senses millions
+        idx = np.flatnonzero(unplanned)
+        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64)[idx])
+        idx, part = idx[part >= 0], part[part >= 0]
+        st = sn.states[idx]
+        v2 = st[:, 2] ** 2 + st[:, 3] ** 2
         k_latch = int(round(bp.hover_latch_s / self.preset.dt_s))
-        v2 = sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2
-        latch = unplanned & ok & (step - last <= k_latch) & (v2 < bp.hover_latch_max_speed_m_s ** 2)
+        latch = (step - self._hover_k[part] <= k_latch) & (v2 < bp.hover_latch_max_speed_m_s ** 2)
         if np.any(latch):
             # not one that flies towards its own plan particle: a healthy UAV recovering its plan after the gust pinned
             # it (crossing --gust N = 137 s125, no failure: latched, it kept the hover rules while it accelerated back
             # into the stream, 0.433 -> 0.198 m; with this gate 0.352 m)
-            to_p = np.zeros((part.shape[0], 2))
-            to_p[ok] = self.plan.states[part[ok], 0:2] - sn.states[ok, 0:2]
+            to_p = self.plan.states[part, 0:2] - st[:, 0:2]
             dist = np.maximum(np.hypot(to_p[:, 0], to_p[:, 1]), 1e-9)
-            towards = (sn.states[:, 2] * to_p[:, 0] + sn.states[:, 3] * to_p[:, 1]) / dist
+            towards = (st[:, 2] * to_p[:, 0] + st[:, 3] * to_p[:, 1]) / dist
             latch &= towards < bp.hover_latch_max_towards_plan * np.sqrt(v2)
-        out = hover | latch
-        self._hover_k[part[ok & out]] = step
+        out = hover.copy()
+        out[idx[latch]] = True
+        self._hover_k[part[out[idx]]] = step
         return out
 
     def _seen_snapshot(self) -> tuple[np.ndarray, np.ndarray] | None:
