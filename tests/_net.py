@@ -21,6 +21,9 @@ __all__ = ["free_udp_port", "free_udp_ports", "free_tcp_ports", "free_ports", "P
 PYTHON = sys.executable
 VENV_BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parent.parent
+LOG_ROOT: Path | None = None
+"""Where ``spawn`` puts the log folder of a test that gives none: tests/conftest.py sets it to a folder of pytest's
+own temporary tree (which pytest prunes, keeping the last runs); None (a helper run outside pytest): the system's."""
 
 
 # Ports for the test's processes are chosen below Linux's ephemeral range (32768-60999), as mfg_swarm.launcher does:
@@ -146,7 +149,7 @@ class Proc:
 def spawn(argv: Sequence[str], log_dir: Path | None = None, name: str = "proc", env: dict | None = None,
           stop_signal: int = signal.SIGTERM, stop_timeout_s: float = 5.0) -> Iterator[Proc]:
     """Run ``argv`` for the duration of the ``with`` block; always stopped (then killed) on exit."""
-    log_dir = Path(log_dir or tempfile.mkdtemp(prefix="e2e-"))
+    log_dir = Path(log_dir or tempfile.mkdtemp(prefix="e2e-", dir=LOG_ROOT))
     log_dir.mkdir(parents=True, exist_ok=True)
     proc = Proc(argv, log_dir / f"{name}-{time.monotonic_ns()}.log", env=env)
     try:
