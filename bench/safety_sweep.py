@@ -104,13 +104,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hold-jerk", type=float, default=None, help="the failed vehicle's Hold jerk limit (sim --hold-jerk)")
     ap.add_argument("--hold-model", choices=("pd", "px4"), default=None, help="the failed vehicle's Hold model (sim --hold-model)")
     ap.add_argument("--gust", action="store_true")
+    ap.add_argument("--acc-lag-s", type=float, default=None, help="the airframes' acceleration lag (sim --acc-lag-s)")
     a = ap.parse_args(argv)
     from mfg_autopilot.presets import MODES
 
     extra = ([x for k in a.fail_vehicle for x in ("--fail-vehicle", str(k))]
              + [x for t in (a.fail_at or [20.0]) for x in ("--fail-at", str(t))] if a.fail_vehicle else []) + \
         (["--hold-jerk", str(a.hold_jerk)] if a.hold_jerk is not None else []) + (["--gust"] if a.gust else []) + \
-        (["--hold-model", a.hold_model] if a.hold_model is not None else [])
+        (["--hold-model", a.hold_model] if a.hold_model is not None else []) + \
+        (["--acc-lag-s", str(a.acc_lag_s)] if a.acc_lag_s is not None else [])
     rows = []
     for family in a.families.split(","):
         for n in (int(x) for x in a.n.split(",")):

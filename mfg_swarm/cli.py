@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -46,6 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="in-process simulator: the controller core driving all N UAVs at once")
     _add_common(sim)
     sim.add_argument("--physics-dt-s", type=float, default=0.1, help="plant sub-step (default: 0.1 s)")
+    sim.add_argument("--acc-lag-s", type=float, default=0.0, metavar="TAU",
+                     help="the airframes fly their acceleration command through a first-order lag of TAU s (PX4's "
+                          "attitude loop: about 1 / MC_ROLL_P = 0.154 s); default 0: at once, as the paper's eq. 9")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     sim.add_argument("--fail-vehicle", type=int, action="append", default=None, metavar="K",
                      help="fault: vehicle K stops following its controller and holds where it is (PX4 Hold); "
@@ -95,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the controllers' zenoh json5 (credentials); '{i}' in the name is the vehicle id")
     run.add_argument("--mavlink-key", default=None, metavar="FILE",
                      help="MAVLink 2 signing between every controller and its vehicle (64 hex chars, mode 600)")
+    run.add_argument("--acc-lag-s", type=float, default=0.0, metavar="TAU",
+                     help="the mock vehicles fly their acceleration command through a first-order lag of TAU s "
+                          "(mock-vehicle --acc-lag-s; PX4's attitude loop: about 0.154 s); default 0")
     run.add_argument("--time-limit-s", type=float, default=None, help="stop the swarm after this wall time")
     run.add_argument("--startup-timeout-s", type=float, default=None,
                      help="every controller must reach OFFBOARD within this (default: scales with N, the cores and "
@@ -220,7 +227,7 @@ def _cmd_sim(args) -> int:
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
                     fail_vehicle=_one_or_tuple(args.fail_vehicle), fail_at_s=_one_or_tuple(args.fail_at) or 0.0,
                     hold_jerk_m_s3=args.hold_jerk, gust=GustParams() if args.gust else None,
-                    hold_model=args.hold_model)
+                    hold_model=args.hold_model, acc_lag_s=args.acc_lag_s)
     traj, metrics = simulate(cfg, progress=False if args.no_progress else None)
     args.out.mkdir(parents=True, exist_ok=True)
     write_npz_atomic(args.out / "trajectories.npz", traj.arrays())
@@ -277,7 +284,9 @@ def _cmd_run(args) -> int:
                     startup_timeout_s=args.startup_timeout_s,
                     progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
                     zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config,
-                    controller_rt_priority=args.rt_priority)
+                    controller_rt_priority=args.rt_priority, acc_lag_s=args.acc_lag_s)
+    if not (math.isfinite(args.acc_lag_s) and 0.0 <= args.acc_lag_s <= 2.0):
+        raise ValueError(f"--acc-lag-s must be in [0, 2] s (0: no lag), got {args.acc_lag_s}")
     if args.mavlink_key:
         from mavlink_bridge import load_signing_key
         load_signing_key(args.mavlink_key)    # a missing or loose key file fails before any process starts

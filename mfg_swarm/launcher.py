@@ -90,6 +90,7 @@ class RunConfig:
     zenoh_base_port: int | None = None
     gcs_url: str = "none"
     physics_dt_s: float = 0.1
+    acc_lag_s: float = 0.0                    # the mocks' acceleration response lag (mock-vehicle --acc-lag-s)
     time_limit_s: float | None = None
     startup_timeout_s: float | None = None    # None: default_startup_timeout_s(N) (scales with N and the machine)
     progress: bool | None = None
@@ -461,6 +462,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
+            if cfg.acc_lag_s > 0:
+                argv.append(f"--acc-lag-s={float(cfg.acc_lag_s)!r}")
             v0 = getattr(sc, "initial_vel_m_s", None)
             if cfg.mission is None and v0 is not None:       # the scenario's start velocity (dense: at rest), else the wind's
                 argv.append(f"--initial-vel-m-s={float(v0[i, 0])!r},{float(v0[i, 1])!r}")

@@ -107,6 +107,7 @@ class SimConfig:
     hold_jerk_m_s3: float = 4.0       # its Hold's jerk limit (PX4 MPC_JERK_AUTO); 0: none
     gust: GustParams | None = None
     hold_model: str = "px4"           # its Hold: "px4" (PX4's trajectory and position loop) or "pd" (PD + jerk limit)
+    acc_lag_s: float = 0.0            # the airframes' acceleration response lag (PlantParams.acc_lag_s); 0: none
 
     @property
     def failures(self) -> tuple[tuple[int, float], ...]:
@@ -143,6 +144,8 @@ class SimConfig:
                              f"{self.fail_at_s}")
         if not np.all(np.isfinite(ts) & (ts >= 0)):
             raise ValueError(f"fail_at_s must be finite and >= 0, got {self.fail_at_s}")
+        if not (np.isfinite(self.acc_lag_s) and 0.0 <= self.acc_lag_s <= 2.0):
+            raise ValueError(f"acc_lag_s must be in [0, 2] s (0: no lag), got {self.acc_lag_s}")
         if self.hold_model not in ("pd", "px4"):
             raise ValueError(f"hold_model must be pd or px4, got {self.hold_model!r}")
         if self.hold_model == "px4" and not 1.0 <= self.hold_jerk_m_s3 <= 80.0:
@@ -214,12 +217,13 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
     return applied, a_k, hold_pos_m
 
 
-def plant_params_for(preset: Preset, physics_dt_s: float = 0.1) -> PlantParams:
-    """The plant that matches the preset's model (same c0, v_o, V_o, acceleration limit)."""
+def plant_params_for(preset: Preset, physics_dt_s: float = 0.1, acc_lag_s: float = 0.0) -> PlantParams:
+    """The plant that matches the preset's model (same c0, v_o, V_o, acceleration limit); ``acc_lag_s`` the
+    airframe's acceleration response lag (``PlantParams.acc_lag_s``), which the model does not have."""
     c = preset.cost
     return PlantParams(wind=WindParams(c0_per_s=c.c0_per_s, mean_wind_m_s=tuple(c.mean_wind_m_s),
                                        wind_diffusion_m_s=tuple(map(tuple, c.wind_diffusion_m_s))),
-                       acc_limit_m_s2=preset.learner.acc_max_m_s2, physics_dt_s=physics_dt_s)
+                       acc_limit_m_s2=preset.learner.acc_max_m_s2, physics_dt_s=physics_dt_s, acc_lag_s=acc_lag_s)
 
 
 FULL_HEARD_MAX_STATES = 0
@@ -302,7 +306,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     t_wall = time.perf_counter()
     sc, preset = cfg.scenario, cfg.preset
     n, T, dt = sc.n, cfg.steps, preset.dt_s
-    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset, cfg.physics_dt_s), cfg.seed,
+    plant = SwarmPlant(sc.initial_pos_m, plant_params_for(preset, cfg.physics_dt_s, cfg.acc_lag_s), cfg.seed,
                        initial_vel_m_s=getattr(sc, "initial_vel_m_s", None))
     f32 = as_f32 if cfg.link_float32 else (lambda x: np.asarray(x, dtype=float))
 
@@ -449,6 +453,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     if cert is not None:
         metrics["plan"] = cert            # what the t = 0 plan guarantees (guidance: rigid, scheduled groups, or none)
     metrics.update(start_spacing_m=sc.min_start_spacing_m, slot_spacing_m=sc.slot_spacing_m)
+    if cfg.acc_lag_s > 0:
+        metrics["acc_lag_s"] = cfg.acc_lag_s
     if failures:
         Ks = [K for K, _ in failures]
         others = np.ones(n, dtype=bool); others[Ks] = False

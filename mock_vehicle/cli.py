@@ -50,6 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wind-diffusion", type=_floats((1, 4)), default=(0.1,), metavar="S|V11,V12,V21,V22", help="V_o: isotropic S or a 2x2 matrix, m/s/sqrt(s)")
     p.add_argument("--acc-limit-m-s2", type=float, default=d.acc_limit_m_s2, help="airframe acceleration limit, m/s^2")
     p.add_argument("--physics-dt-s", type=float, default=d.physics_dt_s, help="largest physics sub-step, s")
+    p.add_argument("--acc-lag-s", type=float, default=d.acc_lag_s, metavar="TAU",
+                   help="fly the acceleration command through a first-order lag of TAU s (param SIM_ACC_TAU; PX4's "
+                        "attitude loop: about 1 / MC_ROLL_P = 0.154 s); default 0: at once, as the paper's eq. 9")
     p.add_argument("--dt-s", type=float, default=d.dt_s, help="lockstep control step, s")
     p.add_argument("--lockstep", action="store_true", help="simulated time advances one dt_s per setpoint (docs/lockstep.md)")
     p.add_argument("--lockstep-resend-hz", type=float, default=d.lockstep_resend_hz, help="lockstep: wall-clock re-send rate of telemetry")
@@ -94,6 +97,8 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         raise ValueError(f"--lockstep-resend-hz must be > 0 in lockstep, got {args.lockstep_resend_hz}")
     if args.origin is not None and not (-90 <= args.origin[0] <= 90 and -180 <= args.origin[1] <= 180 and math.isfinite(args.origin[2])):
         raise ValueError(f"--origin must be LAT,LON,ALT with |lat| <= 90, |lon| <= 180 and a finite altitude, got {args.origin}")
+    if not (math.isfinite(args.acc_lag_s) and 0.0 <= args.acc_lag_s <= 2.0):
+        raise ValueError(f"--acc-lag-s must be in [0, 2] s (0: no lag), got {args.acc_lag_s}")
     params = []
     for item in args.param:
         name, sep, value = item.partition("=")
@@ -122,6 +127,7 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         wind=wind,
         acc_limit_m_s2=args.acc_limit_m_s2,
         physics_dt_s=args.physics_dt_s,
+        acc_lag_s=args.acc_lag_s,
         dt_s=args.dt_s,
         lockstep=args.lockstep,
         com_of_loss_t_s=args.com_of_loss_t_s,

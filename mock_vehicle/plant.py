@@ -32,6 +32,8 @@ __all__ = [
     "noise_stream",
     "initial_wind_velocity",
     "euler_maruyama_step",
+    "lag_coefficients",
+    "lagged_acc_m_s2",
     "saturate_norm",
     "hold_acc_m_s2",
     "jerk_limited_m_s2",
@@ -81,12 +83,20 @@ class PlantParams:
     physics_dt_s: float = 0.1
     """Largest Euler-Maruyama sub-step, s. A control step dt is split into
     ceil(dt / physics_dt_s) equal sub-steps with the acceleration held."""
+    acc_lag_s: float = 0.0
+    """Time constant of the airframe's acceleration response, s: the acceleration flown follows the (saturated)
+    command as a first-order lag, da/dt = (a_cmd - a) / acc_lag_s (``lagged_acc_m_s2``). 0 (the default): the
+    command is flown at once, as eq. 9 writes it. A multicopter tilts to accelerate, and PX4's attitude loop is a
+    P on the angle (MC_ROLL_P = MC_PITCH_P = 6.5 /s by default, mc_att_control_params.c) over a much faster rate
+    loop: about 1 / 6.5 = 0.154 s, more with slow motors. The paper's model and the controller assume none."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.acc_limit_m_s2) and self.acc_limit_m_s2 > 0):
             raise ValueError(f"acc_limit_m_s2 must be finite and > 0, got {self.acc_limit_m_s2}")
         if not (np.isfinite(self.physics_dt_s) and self.physics_dt_s > 0):
             raise ValueError(f"physics_dt_s must be finite and > 0, got {self.physics_dt_s}")
+        if not (np.isfinite(self.acc_lag_s) and 0.0 <= self.acc_lag_s <= 2.0):
+            raise ValueError(f"acc_lag_s must be in [0, 2] s (0: no lag), got {self.acc_lag_s}")
 
     def substeps(self, dt_s: float) -> int:
         """Number of physics sub-steps for a control step of ``dt_s``."""
@@ -152,6 +162,25 @@ def saturate_norm(vec: np.ndarray, limit: float) -> np.ndarray:
     norm = np.linalg.norm(vec, axis=-1, keepdims=True)
     scale = np.minimum(1.0, limit / np.maximum(norm, 1e-300))
     return vec * scale
+
+
+def lag_coefficients(h_s: float, lag_s: float) -> tuple[float, float]:
+    """(end, mean) of a first-order lag over a sub-step ``h_s`` with the command held: starting from ``a`` with the
+    command ``c``, the acceleration at the sub-step's end is ``a + (c - a) end`` and its mean over the sub-step
+    ``a + (c - a) mean`` (exact for the held command). ``lag_s`` 0: (1, 1), the command at once."""
+    if lag_s <= 0.0:
+        return 1.0, 1.0
+    x = h_s / lag_s
+    end = -math.expm1(-x)                 # 1 - exp(-h / tau)
+    return end, 1.0 - end / x             # mean of 1 - exp(-t / tau) over [0, h]
+
+
+def lagged_acc_m_s2(acc_flown_m_s2: np.ndarray, acc_cmd_m_s2: np.ndarray, end: float,
+                    mean: float) -> tuple[np.ndarray, np.ndarray]:
+    """One sub-step of the first-order acceleration response (``PlantParams.acc_lag_s``; coefficients from
+    ``lag_coefficients``): (the acceleration at its end, its mean over the sub-step), each (n, 2)."""
+    gap = acc_cmd_m_s2 - acc_flown_m_s2
+    return acc_flown_m_s2 + gap * end, acc_flown_m_s2 + gap * mean
 
 
 def euler_maruyama_step(
@@ -259,6 +288,8 @@ class SwarmPlant:
     ``step`` integrates one control step ``dt_s`` in ``params.substeps(dt_s)`` equal
     Euler-Maruyama sub-steps with the (saturated) acceleration held. A mock vehicle
     process that makes the same calls for its own id moves bit-for-bit the same.
+    With ``params.acc_lag_s`` > 0 each sub-step flies the mean of the lagged acceleration
+    (``acc_flown_m_s2``, the lag's state, starting at 0) instead of the command.
     """
 
     _PREFETCH = 500          # draws per vehicle taken from its stream at a time
@@ -297,6 +328,7 @@ class SwarmPlant:
         self._noise = np.empty((n, 0))
         self._noise_pos = 0
         self._single_cache: tuple | None = None   # _step_single: (params, dt_s, what it derives from them)
+        self.acc_flown_m_s2 = np.zeros((n, 2))    # the lag's state (params.acc_lag_s > 0): the acceleration flown now
 
     @property
     def n(self) -> int:
@@ -304,7 +336,9 @@ class SwarmPlant:
 
     def step(self, acc_m_s2: np.ndarray, dt_s: float) -> np.ndarray:
         """Advance every vehicle by ``dt_s`` holding ``acc_m_s2`` (n, 2). Returns the
-        acceleration actually applied (after the airframe limit), (n, 2)."""
+        acceleration actually applied (after the airframe limit), (n, 2): the command the
+        airframe took; with ``params.acc_lag_s`` > 0 it flies that command's lagged response
+        (``acc_flown_m_s2``)."""
         if self.n == 1:
             return self._step_single(acc_m_s2, dt_s)
         return self._step_vectorised(acc_m_s2, dt_s)
@@ -318,8 +352,17 @@ class SwarmPlant:
         h = dt_s / k
         noise = self._take_noise(k)
         x = self.states
-        for j in range(k):
-            x = euler_maruyama_step(x, acc, h, self.params.wind, noise[:, j, :])
+        if self.params.acc_lag_s > 0.0:
+            end, mean = lag_coefficients(h, self.params.acc_lag_s)
+            a = self.acc_flown_m_s2
+            for j in range(k):
+                a, a_mean = lagged_acc_m_s2(a, acc, end, mean)
+                x = euler_maruyama_step(x, a_mean, h, self.params.wind, noise[:, j, :])
+            self.acc_flown_m_s2 = a
+        else:
+            for j in range(k):
+                x = euler_maruyama_step(x, acc, h, self.params.wind, noise[:, j, :])
+            self.acc_flown_m_s2 = acc
         self.states = x
         self.time_s += dt_s
         return acc
@@ -356,14 +399,26 @@ class SwarmPlant:
             wind = self.params.wind
             k = self.params.substeps(dt_s)
             cached = self._single_cache = (self.params, dt_s, k, dt_s / k, np.sqrt(dt_s / k), wind.c0_per_s,
-                                           *wind.v_o.tolist(), wind.V_o.T)
-        _, _, k, h, sqrt_h, c0, vox, voy, diffusion_t = cached
+                                           *wind.v_o.tolist(), wind.V_o.T,
+                                           *lag_coefficients(dt_s / k, self.params.acc_lag_s))
+        _, _, k, h, sqrt_h, c0, vox, voy, diffusion_t, end, mean = cached
         dW = (self._take_noise(k) * sqrt_h).reshape(k, 1, 2)                    # euler_maruyama_step's dW, per sub-step
         diffusion = np.matmul(dW, diffusion_t).reshape(k, 2).tolist()
         x, y, vx, vy = self.states[0].tolist()
-        for dvx, dvy in diffusion:                                              # euler_maruyama_step
-            x, y, vx, vy = (x + vx * h, y + vy * h,
-                            vx + (ax - c0 * (vx - vox)) * h + dvx, vy + (ay - c0 * (vy - voy)) * h + dvy)
+        if self.params.acc_lag_s > 0.0:
+            fx, fy = self.acc_flown_m_s2[0].tolist()
+            for dvx, dvy in diffusion:                                          # lagged_acc_m_s2, euler_maruyama_step
+                gx, gy = ax - fx, ay - fy
+                mx, my = fx + gx * mean, fy + gy * mean
+                fx, fy = fx + gx * end, fy + gy * end
+                x, y, vx, vy = (x + vx * h, y + vy * h,
+                                vx + (mx - c0 * (vx - vox)) * h + dvx, vy + (my - c0 * (vy - voy)) * h + dvy)
+            self.acc_flown_m_s2 = np.array([[fx, fy]])
+        else:
+            for dvx, dvy in diffusion:                                          # euler_maruyama_step
+                x, y, vx, vy = (x + vx * h, y + vy * h,
+                                vx + (ax - c0 * (vx - vox)) * h + dvx, vy + (ay - c0 * (vy - voy)) * h + dvy)
+            self.acc_flown_m_s2 = np.array([[ax, ay]])
         self.states = np.array([[x, y, vx, vy]])
         self.time_s += dt_s
         return np.array([[ax, ay]])

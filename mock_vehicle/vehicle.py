@@ -106,6 +106,7 @@ class VehicleConfig:
     wind: WindParams = field(default_factory=WindParams)
     acc_limit_m_s2: float = 2.0
     physics_dt_s: float = 0.1
+    acc_lag_s: float = 0.0           # the airframe's acceleration response lag (plant.PlantParams.acc_lag_s; SIM_ACC_TAU)
     dt_s: float = 1.0
     lockstep: bool = False
     com_of_loss_t_s: float = 1.0
@@ -188,13 +189,15 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
                 "SIM_WIND_V12": v[0, 1],
                 "SIM_WIND_V21": v[1, 0],
                 "SIM_WIND_V22": v[1, 1],
+                "SIM_ACC_TAU": cfg.acc_lag_s,
                 "SIM_ARM_DENY": 1.0 if cfg.deny_arming else 0.0,
                 **dict(cfg.params),
             }
         )
         self.plant = SwarmPlant(
             np.array([cfg.initial_pos_m], dtype=float),
-            PlantParams(wind=cfg.wind, acc_limit_m_s2=cfg.acc_limit_m_s2, physics_dt_s=cfg.physics_dt_s),
+            PlantParams(wind=cfg.wind, acc_limit_m_s2=cfg.acc_limit_m_s2, physics_dt_s=cfg.physics_dt_s,
+                        acc_lag_s=cfg.acc_lag_s),
             seed=cfg.seed,
             vehicle_ids=np.array([cfg.instance]),
             initial_vel_m_s=None if cfg.initial_vel_m_s is None else np.array([cfg.initial_vel_m_s], dtype=float),
@@ -410,7 +413,8 @@ class MockVehicle(LifecycleMixin, TelemetryMixin):
             mean_wind_m_s=(p["SIM_WIND_VN"], p["SIM_WIND_VE"]),
             wind_diffusion_m_s=((p["SIM_WIND_V11"], p["SIM_WIND_V12"]), (p["SIM_WIND_V21"], p["SIM_WIND_V22"])),
         )
-        self.plant.params = PlantParams(wind=wind, acc_limit_m_s2=p["MPC_ACC_HOR_MAX"], physics_dt_s=self.cfg.physics_dt_s)
+        self.plant.params = PlantParams(wind=wind, acc_limit_m_s2=p["MPC_ACC_HOR_MAX"], physics_dt_s=self.cfg.physics_dt_s,
+                                        acc_lag_s=p["SIM_ACC_TAU"])
 
     # ------------------------------------------------------------------ dynamics
     def _setpoint_acc_m_s2(self) -> np.ndarray:

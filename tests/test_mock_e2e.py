@@ -235,12 +235,13 @@ def test_bad_input_is_ignored_logged_and_survived():
     assert "Traceback" not in log
 
 
-def _drive_lockstep(seed: int, n_steps: int, tmp_path, tag: str):
+def _drive_lockstep(seed: int, n_steps: int, tmp_path, tag: str, *extra: str):
     """Fly a lockstep mock through ``n_steps`` fixed setpoints; returns the telemetry."""
     dt_ms = 500
     accs = [(1.5 * math.cos(0.4 * k), 1.5 * math.sin(0.4 * k), 0.0) for k in range(n_steps)]
     with running_mock_vehicle(
-        "--lockstep", "--dt-s", "0.5", "--seed", str(seed), "--initial-pos-m", "150,100", "--tlog", str(tmp_path / f"{tag}.tlog")
+        "--lockstep", "--dt-s", "0.5", "--seed", str(seed), "--initial-pos-m", "150,100", "--tlog", str(tmp_path / f"{tag}.tlog"),
+        *extra,
     ) as mock:
         with VehicleLink.open(mock.onboard_url, target_system=1) as link:
             link.wait_heartbeat(timeout_s=10.0)
@@ -279,6 +280,22 @@ def test_lockstep_is_bit_for_bit_reproducible_and_matches_the_plant(tmp_path):
     np.testing.assert_array_equal(got, np.array(expected).astype(np.float32).astype(np.float64))
     c, _ = _drive_lockstep(seed=8, n_steps=3, tmp_path=tmp_path, tag="c")
     assert c[1:] != a[1:4]  # another seed, another wind
+
+
+def test_lockstep_with_an_acceleration_lag_matches_the_plant_with_it(tmp_path):
+    # the mock process flies --acc-lag-s as the simulator's plant does (PlantParams.acc_lag_s), bit for bit
+    a, accs = _drive_lockstep(7, 12, tmp_path, "lag", "--acc-lag-s", "0.154")
+    plant = SwarmPlant(np.array([[150.0, 100.0]]), PlantParams(acc_lag_s=0.154), seed=7, vehicle_ids=np.array([0]))
+    expected = [plant.states[0].copy()]
+    for acc in accs:
+        plant.step(np.array([[np.float32(acc[0]), np.float32(acc[1])]], dtype=np.float64), 0.5)
+        expected.append(plant.states[0].copy())
+    got = np.array([[s.x_m, s.y_m, s.vx_m_s, s.vy_m_s] for s in a])
+    np.testing.assert_array_equal(got, np.array(expected).astype(np.float32).astype(np.float64))
+    unlagged = SwarmPlant(np.array([[150.0, 100.0]]), PlantParams(), seed=7, vehicle_ids=np.array([0]))
+    for acc in accs:
+        unlagged.step(np.array([[np.float32(acc[0]), np.float32(acc[1])]], dtype=np.float64), 0.5)
+    assert np.abs(unlagged.states[0, 2:] - plant.states[0, 2:]).max() > 0.05     # the lag is flown, not ignored
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
