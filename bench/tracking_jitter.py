@@ -43,20 +43,29 @@ def along_track_stats(vel_m_s: np.ndarray, acc_m_s2: np.ndarray, dt_s: float) ->
 
 
 def held_loop(kp: float, kv: float, c0_per_s: float, dt_s: float, wind_m_s_sqrt_s: float, steps: int,
-              rng: np.random.Generator) -> dict:
+              rng: np.random.Generator, lag_s: float = 0.0) -> dict:
     """One axis of the tracking error (position, velocity) under eq. 9 with drag c0 and the command a = -kp e_r - kv e_v
-    held for dt (zero-order hold, exact), the wind a velocity kick N(0, (V_o sqrt(dt))^2) per period. Returns the
-    closed-loop eigenvalues, their largest magnitude, and over ``steps`` periods the rms of the command, of the
-    position and velocity errors, and the command's correlation with itself a period later (< 0: it alternates)."""
+    held for dt (zero-order hold, exact), the wind a velocity kick N(0, (V_o sqrt(dt))^2) per period. ``lag_s`` > 0:
+    the airframe flies the command through a first-order lag (``PlantParams.acc_lag_s``; the acceleration flown is a
+    third state, exact over the period). Returns the closed-loop eigenvalues, their largest magnitude, and over
+    ``steps`` periods the rms of the command, of the position and velocity errors, and the command's correlation with
+    itself a period later (< 0: it alternates)."""
     from scipy.linalg import expm
 
-    m = np.zeros((3, 3))
-    m[0, 1], m[1, 1], m[1, 2] = 1.0, -c0_per_s, 1.0
-    e = expm(m * dt_s)
-    ad, bd = e[:2, :2], e[:2, 2]
-    k = np.array([kp, kv])
+    if lag_s > 0.0:       # [e_r, e_v, a_flown]' = [[0 1 0] [0 -c0 1] [0 0 -1/tau]] x + [0 0 1/tau]' u
+        m = np.zeros((4, 4))
+        m[0, 1], m[1, 1], m[1, 2], m[2, 2], m[2, 3] = 1.0, -c0_per_s, 1.0, -1.0 / lag_s, 1.0 / lag_s
+        e = expm(m * dt_s)
+        ad, bd = e[:3, :3], e[:3, 3]
+        k = np.array([kp, kv, 0.0])
+    else:
+        m = np.zeros((3, 3))
+        m[0, 1], m[1, 1], m[1, 2] = 1.0, -c0_per_s, 1.0
+        e = expm(m * dt_s)
+        ad, bd = e[:2, :2], e[:2, 2]
+        k = np.array([kp, kv])
     eig = np.linalg.eigvals(ad - np.outer(bd, k))
-    x, xs, us = np.zeros(2), np.empty((steps, 2)), np.empty(steps)
+    x, xs, us = np.zeros(k.size), np.empty((steps, k.size)), np.empty(steps)
     kick = rng.normal(0.0, wind_m_s_sqrt_s * np.sqrt(dt_s), steps)
     for t in range(steps):
         u = -float(k @ x)
@@ -82,6 +91,35 @@ def discrete_lq_gains(c1: float, c2: float, c3: float, c0_per_s: float, dt_s: fl
     return float(k[0]), float(k[1])
 
 
+def riccati_gains(c1_track: float, cost) -> tuple[float, float]:
+    """(kp, kv) of eq. 8 at the start weights for a tracking cost with ``c1_track`` (TrackingParams.c1_track) and
+    the preset's c0, c2, c3: the continuous Riccati gains [0 1] P / c3 (``lqr_riccati_axis``)."""
+    from mfg_autopilot.paper.model import lqr_riccati_axis
+
+    P = lqr_riccati_axis(replace(cost, c1=c1_track))
+    return float(P[1, 0] / cost.c3), float(P[1, 1] / cost.c3)
+
+
+LAGS_S = (0.0, 0.05, 0.1, 0.154, 0.2, 0.25, 0.3)
+
+
+def lag_table(p, c1_values=(24.0, 12.0, 6.0, 3.0, 1.5), lags_s=LAGS_S, periods: int = 200_000) -> list[dict]:
+    """The held loop against an airframe lag: per c1_track, its gains and per lag the largest closed-loop eigenvalue
+    magnitude (> 1: the tracking error grows) and the position error rms the wind alone makes of it (seed 0)."""
+    wind = float(np.max(np.abs(np.diag(p.cost.V_o))))
+    rows = []
+    for c1 in c1_values:
+        kp, kv = riccati_gains(c1, p.tracking_cost)
+        cells = []
+        for lag in lags_s:
+            first = held_loop(kp, kv, p.cost.c0_per_s, p.dt_s, wind, 10, np.random.default_rng(0), lag_s=lag)
+            cells.append(first if first["radius"] >= 1.0 else       # unstable: no spread to measure
+                         held_loop(kp, kv, p.cost.c0_per_s, p.dt_s, wind, periods, np.random.default_rng(0), lag_s=lag))
+        rows.append({"c1_track": c1, "kp": kp, "kv": kv, "radius": [c["radius"] for c in cells],
+                     "pos_rms": [c["pos_rms"] if c["radius"] < 1.0 else float("inf") for c in cells]})
+    return rows
+
+
 def main(argv=None) -> None:
     from mfg_autopilot.paper.features import make_sigma_H
     from mfg_autopilot.paper.model import lqr_value_weights, optimal_action
@@ -95,7 +133,23 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=83)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--loop-only", action="store_true", help="print the gains and the held loop only (no flights)")
+    ap.add_argument("--lag", action="store_true",
+                    help="print the held loop against the airframe's acceleration lag only (PlantParams.acc_lag_s)")
     a = ap.parse_args(argv)
+    if a.lag:
+        p = preset_by_name("default")
+        print(f"the held loop against an acceleration lag tau (one axis, linear; dt = {p.dt_s:g} s, c0 = "
+              f"{p.cost.c0_per_s:g} /s; PX4's attitude loop: tau ~ 1 / MC_ROLL_P = 0.154 s). Each cell: the largest "
+              f"closed-loop eigenvalue magnitude (the error's factor per period; >= 1 unstable), then the position "
+              f"error rms the wind alone makes (200,000 periods, seed 0)\n")
+        print("| c1_track | kp (/s^2) | kv (/s) | " + " | ".join(f"tau = {t:g} s" for t in LAGS_S) + " |")
+        print("|---" * (3 + len(LAGS_S)) + "|")
+        for r in lag_table(p):
+            cells = " | ".join(f"{rad:.3f}, " + ("unstable" if not np.isfinite(e) else f"{100 * e:.1f} cm")
+                               for rad, e in zip(r["radius"], r["pos_rms"]))
+            mark = " (the default)" if r["c1_track"] == p.tracking.c1_track else ""
+            print(f"| {r['c1_track']:g}{mark} | {r['kp']:.2f} | {r['kv']:.2f} | {cells} |")
+        return
     p = preset_by_name("default")
     sigma_H = make_sigma_H(p.learner.state_scale)
     w = lqr_value_weights(sigma_H, p.tracking_cost)[None, :]

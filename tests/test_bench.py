@@ -235,3 +235,51 @@ def test_held_loop_of_eq8_is_nearly_deadbeat_and_a_discrete_lq_trades_command_sp
     assert dlq["cmd_rms"] < 0.8 * start["cmd_rms"] and dlq["pos_rms"] > 1.8 * start["pos_rms"]
     # a gain far too high for the period is unstable: the analysis can tell
     assert mod.held_loop(4.0, 6.0, 0.1, 0.5, 0.1, 200, np.random.default_rng(3))["radius"] > 1.0
+
+
+def _tracking_jitter():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("tracking_jitter", Path(__file__).parents[1] / "bench" / "tracking_jitter.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("kp, kv, lag_s", [(4.0, 2.9, 0.25), (2.0, 2.14, 0.154), (4.0, 2.9, 0.154)])
+def test_held_loop_with_an_airframe_lag_is_the_plants(kp, kv, lag_s):
+    """bench/tracking_jitter.py's held loop with a lag (``lag_s``, the acceleration flown as a third state) is what
+    the simulator's plant does (``PlantParams.acc_lag_s``): one vehicle, no wind noise, 1 m off, the command
+    -kp e_r - kv e_v held over each 0.5 s. The error's growth per period over periods 40-80 (geometric mean of the
+    state norm's ratio) is the largest eigenvalue magnitude within 3 % (the plant's Euler sub-steps of 5 ms)."""
+    from mock_vehicle.plant import PlantParams, SwarmPlant, WindParams
+
+    mod = _tracking_jitter()
+    radius = mod.held_loop(kp, kv, 0.1, 0.5, 0.1, 10, np.random.default_rng(0), lag_s=lag_s)["radius"]
+    calm = WindParams(c0_per_s=0.1, mean_wind_m_s=(0.0, 0.0), wind_diffusion_m_s=((0.0, 0.0), (0.0, 0.0)))
+    plant = SwarmPlant(np.array([[1.0, 0.0]]), PlantParams(wind=calm, acc_lag_s=lag_s, physics_dt_s=0.005,
+                                                           acc_limit_m_s2=1e6), seed=0,
+                       vehicle_ids=np.array([0]), initial_vel_m_s=np.zeros((1, 2)))
+    norms = []
+    for _ in range(81):
+        x, v = plant.states[0, 0], plant.states[0, 2]
+        norms.append(np.linalg.norm([x, v, plant.acc_flown_m_s2[0, 0]]))
+        plant.step(np.array([[-kp * x - kv * v, 0.0]]), 0.5)
+    growth = (norms[80] / norms[40]) ** (1 / 40)
+    assert growth == pytest.approx(radius, rel=0.03)
+
+
+def test_eq8s_start_gains_lose_stability_to_an_airframe_lag_and_lower_gains_keep_it():
+    """The held loop against PX4's attitude lag (bench/tracking_jitter.py --lag): the default's start gains
+    (c1_track 24: 4.0 /s^2, 2.9 /s) are nearly deadbeat without a lag, lightly damped at 0.154 s (1 / MC_ROLL_P) and
+    unstable from 0.25 s; the Riccati gains of c1_track 6 (2.0 /s^2, 2.14 /s) stay below 0.91 up to 0.3 s."""
+    from mfg_autopilot.presets import preset_by_name
+
+    mod = _tracking_jitter()
+    rows = {r["c1_track"]: r for r in mod.lag_table(preset_by_name("default"), c1_values=(24.0, 6.0), periods=2_000)}
+    lags = list(mod.LAGS_S)
+    r24, r6 = rows[24.0]["radius"], rows[6.0]["radius"]
+    assert (rows[24.0]["kp"], rows[24.0]["kv"]) == pytest.approx((4.0, 2.9), abs=0.01)
+    assert r24[lags.index(0.0)] < 0.2 and r24[lags.index(0.154)] > 0.9 and r24[lags.index(0.25)] > 1.0
+    assert max(r6) < 0.91 and all(b > a for a, b in zip(r6[1:], r6[2:]))
