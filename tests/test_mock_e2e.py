@@ -266,18 +266,27 @@ def _drive_lockstep(seed: int, n_steps: int, tmp_path, tag: str, *extra: str):
     return samples, accs
 
 
+def _plant_states(accs, params: PlantParams) -> np.ndarray:
+    """The in-process plant (seed 7, vehicle 0, at 150, 100) flown through the setpoints as the wire carries them
+    (float32), as float32 telemetry reports it: (len(accs) + 1, 4)."""
+    plant = SwarmPlant(np.array([[150.0, 100.0]]), params, seed=7, vehicle_ids=np.array([0]))
+    expected = [plant.states[0].copy()]
+    for acc in accs:
+        plant.step(np.array([[np.float32(acc[0]), np.float32(acc[1])]], dtype=np.float64), 0.5)
+        expected.append(plant.states[0].copy())
+    return np.array(expected).astype(np.float32).astype(np.float64)
+
+
+def _telemetry_states(samples) -> np.ndarray:
+    return np.array([[s.x_m, s.y_m, s.vx_m_s, s.vy_m_s] for s in samples])
+
+
 def test_lockstep_is_bit_for_bit_reproducible_and_matches_the_plant(tmp_path):
     a, accs = _drive_lockstep(seed=7, n_steps=12, tmp_path=tmp_path, tag="a")
     b, _ = _drive_lockstep(seed=7, n_steps=12, tmp_path=tmp_path, tag="b")
     assert a == b  # identical telemetry (receive times are not part of equality)
     # ... and equal to the in-process plant with the same seed and vehicle id (float32 wire)
-    plant = SwarmPlant(np.array([[150.0, 100.0]]), PlantParams(), seed=7, vehicle_ids=np.array([0]))
-    expected = [plant.states[0].copy()]
-    for acc in accs:
-        plant.step(np.array([[np.float32(acc[0]), np.float32(acc[1])]], dtype=np.float64), 0.5)
-        expected.append(plant.states[0].copy())
-    got = np.array([[s.x_m, s.y_m, s.vx_m_s, s.vy_m_s] for s in a])
-    np.testing.assert_array_equal(got, np.array(expected).astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(_telemetry_states(a), _plant_states(accs, PlantParams()))
     c, _ = _drive_lockstep(seed=8, n_steps=3, tmp_path=tmp_path, tag="c")
     assert c[1:] != a[1:4]  # another seed, another wind
 
@@ -285,17 +294,9 @@ def test_lockstep_is_bit_for_bit_reproducible_and_matches_the_plant(tmp_path):
 def test_lockstep_with_an_acceleration_lag_matches_the_plant_with_it(tmp_path):
     # the mock process flies --acc-lag-s as the simulator's plant does (PlantParams.acc_lag_s), bit for bit
     a, accs = _drive_lockstep(7, 12, tmp_path, "lag", "--acc-lag-s", "0.154")
-    plant = SwarmPlant(np.array([[150.0, 100.0]]), PlantParams(acc_lag_s=0.154), seed=7, vehicle_ids=np.array([0]))
-    expected = [plant.states[0].copy()]
-    for acc in accs:
-        plant.step(np.array([[np.float32(acc[0]), np.float32(acc[1])]], dtype=np.float64), 0.5)
-        expected.append(plant.states[0].copy())
-    got = np.array([[s.x_m, s.y_m, s.vx_m_s, s.vy_m_s] for s in a])
-    np.testing.assert_array_equal(got, np.array(expected).astype(np.float32).astype(np.float64))
-    unlagged = SwarmPlant(np.array([[150.0, 100.0]]), PlantParams(), seed=7, vehicle_ids=np.array([0]))
-    for acc in accs:
-        unlagged.step(np.array([[np.float32(acc[0]), np.float32(acc[1])]], dtype=np.float64), 0.5)
-    assert np.abs(unlagged.states[0, 2:] - plant.states[0, 2:]).max() > 0.05     # the lag is flown, not ignored
+    lagged = _plant_states(accs, PlantParams(acc_lag_s=0.154))
+    np.testing.assert_array_equal(_telemetry_states(a), lagged)
+    assert np.abs(_plant_states(accs, PlantParams())[-1, 2:] - lagged[-1, 2:]).max() > 0.05   # the lag is flown, not ignored
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
