@@ -163,6 +163,7 @@ class LifecycleMixin:
             self.landed = False
             self._landed_since_s = None
             self.plant.states[0, 2:4] = 0.0
+            self.plant.acc_flown_m_s2 = np.zeros((1, 2))   # level on the ground: no tilt to carry into the air
             self.applied_acc_m_s2 = np.zeros(2)     # PX4's FlightTaskAuto::reActivate on the ground: acceleration 0
             self.hold_pos_m = self.state[0:2].copy()
             log.info("lift-off")
@@ -336,6 +337,7 @@ class LifecycleMixin:
         self.vz_m_s = 0.0
         self.z_m = 0.0
         self.plant.states[0, 2:4] = 0.0
+        self.plant.acc_flown_m_s2 = np.zeros((1, 2))       # level on the ground (the acceleration lag's state)
         self._landed_since_s = self.wall_s()
         log.info("landed")
         if not self.cfg.start_on_ground:

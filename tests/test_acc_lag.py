@@ -106,3 +106,17 @@ def test_a_swarm_flight_with_the_lag_is_flown_and_named():
 def test_the_simulator_checks_the_lag_before_flying():
     with pytest.raises(ValueError, match="acc_lag_s"):
         SimConfig(scenario=make_scenario("paper", 4, 0), mode="mfg", preset=DEFAULT, acc_lag_s=-0.5)
+
+
+def test_a_vehicle_on_the_ground_carries_no_tilt_into_its_next_flight():
+    # the lag's state is the acceleration flown (the tilt): landing levels it, so a takeoff does not start tilted
+    from mock_vehicle.vehicle import MockVehicle
+
+    cfg, _ = config_from_args(build_parser().parse_args(["--acc-lag-s", "0.154", "--start", "ground"]))
+    v = MockVehicle(cfg, lambda msg, port: None, clock=lambda: 1000.0)
+    v.plant.acc_flown_m_s2[:] = 1.5                  # as after a flight
+    v._touch_down()
+    np.testing.assert_array_equal(v.plant.acc_flown_m_s2, np.zeros((1, 2)))
+    v.plant.acc_flown_m_s2[:] = 1.5
+    v._lift_off()
+    np.testing.assert_array_equal(v.plant.acc_flown_m_s2, np.zeros((1, 2)))
