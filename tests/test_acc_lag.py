@@ -120,3 +120,13 @@ def test_a_vehicle_on_the_ground_carries_no_tilt_into_its_next_flight():
     v.plant.acc_flown_m_s2[:] = 1.5
     v._lift_off()
     np.testing.assert_array_equal(v.plant.acc_flown_m_s2, np.zeros((1, 2)))
+
+
+@pytest.mark.parametrize("cmd", ["sim", "run"])
+def test_the_cli_refuses_a_bad_lag_before_anything_flies(cmd, tmp_path, capsys):
+    from mfg_swarm.cli import main
+
+    assert main([cmd, "--n", "4", "--acc-lag-s", "-0.1", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "acc-lag-s" in err or "acc_lag_s" in err, err
+    assert not (tmp_path / "out").exists()          # refused before any flight (or process) started
