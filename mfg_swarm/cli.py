@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 from pathlib import Path
 
@@ -269,6 +268,8 @@ def _cmd_convert(args) -> int:
 
 
 def _cmd_run(args) -> int:
+    from mock_vehicle.plant import PlantParams
+
     from .launcher import LaunchError, RunConfig, run_swarm
 
     out = args.out or Path("runs") / f"{args.scenario}-{args.mode}-n{args.n}-seed{args.seed}"
@@ -285,8 +286,10 @@ def _cmd_run(args) -> int:
                     progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
                     zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config,
                     controller_rt_priority=args.rt_priority, acc_lag_s=args.acc_lag_s)
-    if not (math.isfinite(args.acc_lag_s) and 0.0 <= args.acc_lag_s <= 2.0):
-        raise ValueError(f"--acc-lag-s must be in [0, 2] s (0: no lag), got {args.acc_lag_s}")
+    try:
+        PlantParams(acc_lag_s=args.acc_lag_s)          # the plant's own check, before any process starts
+    except ValueError as exc:
+        raise ValueError(f"--acc-lag-s: {exc}") from None
     if args.mavlink_key:
         from mavlink_bridge import load_signing_key
         load_signing_key(args.mavlink_key)    # a missing or loose key file fails before any process starts

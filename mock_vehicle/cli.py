@@ -11,7 +11,7 @@ import sys
 import threading
 
 from .params import ParamTable
-from .plant import WindParams
+from .plant import PlantParams, WindParams
 from .vehicle import VehicleConfig
 
 __all__ = ["main", "build_parser", "config_from_args"]
@@ -97,8 +97,10 @@ def config_from_args(args: argparse.Namespace) -> tuple[VehicleConfig, list[str]
         raise ValueError(f"--lockstep-resend-hz must be > 0 in lockstep, got {args.lockstep_resend_hz}")
     if args.origin is not None and not (-90 <= args.origin[0] <= 90 and -180 <= args.origin[1] <= 180 and math.isfinite(args.origin[2])):
         raise ValueError(f"--origin must be LAT,LON,ALT with |lat| <= 90, |lon| <= 180 and a finite altitude, got {args.origin}")
-    if not (math.isfinite(args.acc_lag_s) and 0.0 <= args.acc_lag_s <= 2.0):
-        raise ValueError(f"--acc-lag-s must be in [0, 2] s (0: no lag), got {args.acc_lag_s}")
+    try:
+        PlantParams(acc_lag_s=args.acc_lag_s)          # the plant's own check of the lag
+    except ValueError as exc:
+        raise ValueError(f"--acc-lag-s: {exc}") from None
     params = []
     for item in args.param:
         name, sep, value = item.partition("=")
