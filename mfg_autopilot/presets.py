@@ -17,6 +17,7 @@ rooms it loads are imported on first use, so a process pays only for the control
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -92,6 +93,15 @@ def preset_by_name(name: str) -> Preset:
         return _PRESETS[name]()
     except KeyError:
         raise ValueError(f"unknown preset {name!r} (known: {', '.join(sorted(_PRESETS))})") from None
+
+
+def with_inner_loop(preset: Preset, on: bool = True) -> Preset:
+    """``preset`` with its telemetry-rate inner loop switched on (or off): ``TrackingParams.inner_loop``
+    (guidance/inner_loop.py). ValueError for a preset without the default guidance's tracking (the paper's)."""
+    tracking = getattr(preset, "tracking", None)
+    if tracking is None:
+        raise ValueError(f"preset {preset.name!r} has no inner loop (only the default guidance's presets do)")
+    return replace(preset, tracking=replace(tracking, inner_loop=on))
 
 
 def make_controller(mode: str, preset: Preset, destination_site_m: np.ndarray) -> Controller:

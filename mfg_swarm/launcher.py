@@ -50,6 +50,24 @@ mode) instead of a full peer mesh: N = 81 peers on loopback (3,240 links) did no
 their t = 0 exchange within 120 s on a 2-core machine."""
 
 
+LOCKSTEP_PHYSICS_DT_S = 0.1
+"""The mocks' plant sub-step in lockstep: the simulator's default, so that a lockstep swarm flies it bit for bit."""
+
+REALTIME_PHYSICS_DT_S = 0.02
+"""... and in real time (50 Hz, as a real vehicle's estimator publishes). A mock reports the state of its last sub-step:
+at 10 Hz each vehicle's telemetry and its world reports were up to 0.1 s old, by a phase that differed from vehicle
+to vehicle; a formation whose UAVs each saw the others ~0.1-0.3 m behind themselves braked together and fell metres
+behind its plan (``mfg-swarm run --realtime --n 4``: 29 m at 20 s; twenty-seventh session, docs/proximity.md)."""
+
+
+REALTIME_TRAFFIC_RATE_HZ = 20.0
+"""The mocks' proximity sensor rate in real time (``mock-vehicle --traffic-rate-hz``; its default, 5 Hz, is kept for a
+mock started by hand). The default controller's formation feedback reads each neighbour's deviation from its plan
+particle: at 5 Hz a set was up to 0.2 s old at a step, the neighbours' velocities that much behind in the departure's
+acceleration, and a formation of four fell 0.6-0.8 m behind its plan together (0.095 m at 20 Hz, as in lockstep;
+twenty-seventh session)."""
+
+
 START_CPU_S_PER_PAIR = 1.5
 """CPU seconds one vehicle pair needs to start on a quiet machine (a mock imports in ~0.3 s,
 a controller in ~0.8 s, then its link, Zenoh session and t = 0 exchange): the unit of the
@@ -89,8 +107,10 @@ class RunConfig:
     mavlink_base_port: int | None = None     # None: pick free ports; else base + I (PX4: 14540)
     zenoh_base_port: int | None = None
     gcs_url: str = "none"
-    physics_dt_s: float = 0.1
+    physics_dt_s: float | None = None         # the mocks' plant sub-step; None: 0.1 s in lockstep (the simulator's, bit
+                                              # for bit), REALTIME_PHYSICS_DT_S in real time
     acc_lag_s: float = 0.0                    # the mocks' acceleration response lag (mock-vehicle --acc-lag-s)
+    inner_loop: bool = False                  # every controller's telemetry-rate inner loop (mfg-autopilot --inner-loop)
     time_limit_s: float | None = None
     startup_timeout_s: float | None = None    # None: default_startup_timeout_s(N) (scales with N and the machine)
     progress: bool | None = None
@@ -422,7 +442,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
 
     py = cfg.python
     startup_s = cfg.startup_timeout_s if cfg.startup_timeout_s is not None else default_startup_timeout_s(n)
-    wind = plant_params_for(preset, cfg.physics_dt_s).wind
+    physics_dt_s = cfg.physics_dt_s or (LOCKSTEP_PHYSICS_DT_S if cfg.lockstep else REALTIME_PHYSICS_DT_S)
+    wind = plant_params_for(preset, physics_dt_s).wind
     # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
     sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
     world_port = auto_world_port if sensor_range_m is not None else None
@@ -458,7 +479,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--gcs-url", cfg.gcs_url, f"--initial-pos-m={x!r},{y!r}", "--seed", str(cfg.seed),
                     "--c0", repr(float(wind.c0_per_s)), "--mean-wind", ",".join(repr(float(v)) for v in wind.mean_wind_m_s),
                     "--wind-diffusion", ",".join(repr(float(v)) for row in wind.wind_diffusion_m_s for v in row),
-                    "--acc-limit-m-s2", repr(float(preset.learner.acc_max_m_s2)), "--physics-dt-s", repr(float(cfg.physics_dt_s)),
+                    "--acc-limit-m-s2", repr(float(preset.learner.acc_max_m_s2)), "--physics-dt-s", repr(float(physics_dt_s)),
+                    *([] if cfg.lockstep else ["--traffic-rate-hz", repr(REALTIME_TRAFFIC_RATE_HZ)]),
                     "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
@@ -504,6 +526,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     argv += ["--zenoh-connect", f"tcp/127.0.0.1:{z_ports[0]}"]
             if cfg.mavlink_key_file:
                 argv += ["--mavlink-key", str(cfg.mavlink_key_file)]
+            if cfg.inner_loop:
+                argv.append("--inner-loop")
             if cfg.controller_rt_priority is not None:
                 argv += ["--rt-priority", str(int(cfg.controller_rt_priority))]
             argv += list(cfg.extra_controller_args)

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mfg_autopilot.guidance.inner_loop import InnerLoop
 from mfg_autopilot.interface import HeardSummary, Neighbours, Observation
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.presets import MODES, make_controller
@@ -166,7 +167,8 @@ class SimConfig:
 def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold_pos_m: np.ndarray,
                     hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float,
                     first_sub: np.ndarray | None = None,
-                    models: list[Px4AutoXY] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    models: list[Px4AutoXY] | None = None, inner: InnerLoop | None = None, t0_s: float = 0.0,
+                    gust_kick=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One control step with vehicle(s) K (an index, or an index array: then hold_pos_m and hold_acc_m_s2_prev are
     (len(K), 2)) in Hold, every physics sub-step apart (as the mock vehicle flies it): their acceleration is the Hold
     PD's on their state then (``hold_acc_m_s2``), jerk-limited from the previous sub-step's (``jerk_limited_m_s2``);
@@ -181,8 +183,11 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
     ``models`` (len(K),): PX4's trajectory and position loop per vehicle (``hold_model`` "px4") instead of the PD and
     the jerk limit; a model not yet active is activated at the vehicle's first Hold sub-step (its state then, its Hold
     point, the acceleration it flew), as the mock activates it at the mode switch.
-    Returns (the applied accelerations, K's the mean over the sub-steps; K's last acceleration (len(K), 2); the Hold
-    points (len(K), 2))."""
+    ``inner`` (TrackingParams.inner_loop), started at this step's time ``t0_s``: the others fly its command at each
+    sub-step instead of holding ``acc_cmd``, and ``gust_kick(t_a, t_b)`` (if given) adds the gust of each sub-step
+    [t_a, t_b] right after it, so that the inner loop meets it inside the period.
+    Returns (the applied accelerations, K's the mean over the sub-steps - everyone's with ``inner``; K's last
+    acceleration (len(K), 2); the Hold points (len(K), 2))."""
     K = np.atleast_1d(np.asarray(K, dtype=np.int64))
     k_sub = plant.params.substeps(dt_s)
     h = dt_s / k_sub
@@ -191,7 +196,10 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
     a_k = np.asarray(hold_acc_m_s2_prev, dtype=float).reshape(K.size, 2).copy()
     hold_pos_m = np.asarray(hold_pos_m, dtype=float).reshape(K.size, 2).copy()
     first = np.zeros(K.size, dtype=np.int64) if first_sub is None else np.asarray(first_sub, dtype=np.int64)
+    mean_all = np.zeros_like(acc) if inner is not None else None
     for i in range(k_sub):
+        if inner is not None:
+            acc = inner.acc_m_s2(t0_s + i * h, plant.states)
         starting = first == i
         if i > 0 and starting.any():          # a failure inside the step: Hold from this sub-step's state
             hold_pos_m[starting] = braking_stop_m(plant.states[K[starting]])
@@ -208,10 +216,14 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
                     a_k[j] = models[j].acc_m_s2(state_j, h, plant.params.acc_limit_m_s2)
             acc[K[on]] = a_k[on]
         got = plant.step(acc, h)
+        if gust_kick is not None:
+            gust_kick(t0_s + i * h, t0_s + (i + 1) * h)
         a_k = got[K].copy()            # what the airframe applied (within its limit): also the last flown command
         mean_k += a_k
         applied = got if applied is None else applied
-    applied = applied.copy()
+        if mean_all is not None:
+            mean_all += got
+    applied = applied.copy() if mean_all is None else mean_all / k_sub
     applied[K] = mean_k / k_sub
     return applied, a_k, hold_pos_m
 
@@ -346,6 +358,21 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                    if cfg.hold_model == "px4" else None)
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     h_sub = dt / plant.params.substeps(dt)        # a failure inside a control step begins at a physics sub-step
+    tracking_p = getattr(preset, "tracking", None)
+    inner = (InnerLoop(tracking_p.inner_kp_per_s2, tracking_p.inner_kd_per_s, preset.cost.c0_per_s, preset.cost.v_o,
+                       preset.learner.acc_max_m_s2) if tracking_p is not None and tracking_p.inner_loop else None)
+
+    def _gust_kick(t_a: float, t_b: float) -> None:
+        """The gust's share of [t_a, t_b] added to the states at t_b (it acts beyond the plant's model)."""
+        t0, t1 = max(t_a, cfg.gust.start_s), min(t_b, cfg.gust.start_s + cfg.gust.duration_s)
+        if t1 > t0:
+            h = t1 - t0
+            st = plant.states.copy()
+            st[:, 0:2] += 0.5 * a_gust * h * h + a_gust * h * (t_b - t1)
+            st[:, 2:4] += a_gust * h
+            plant.states = st
+
+    gust_kick = _gust_kick if cfg.gust is not None else None
     backstop_active = np.zeros((T, n), dtype=bool)
     # which safety layer made each command (safety.backstop.Layer bits), for controllers that say (the default ones)
     layered = hasattr(ctrl, "backstop_layer")
@@ -387,6 +414,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             if ref is not None and ref[0] == k:
                 plan_pos[k] = ref[1]
         acc_cmd = f32(info.acc_m_s2)
+        if inner is not None:
+            inner.start(k * dt, obs, acc_cmd)
         if failures and any((k + 1) * dt > t + 1e-9 for _, t in failures):
             # the failed vehicles, each from its own failure on: at this control instant, or at a physics sub-step
             # inside this step (first_sub), flying its command until then
@@ -403,20 +432,19 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                 acc_log[k], holds_acc[holding], holds_pos[holding] = _step_with_hold(
                     plant, acc_cmd, dt, Ks, holds_pos[holding], holds_acc[holding], cfg.hold_jerk_m_s3,
                     first_sub[holding],
-                    None if hold_models is None else [m for m, on in zip(hold_models, holding) if on])
+                    None if hold_models is None else [m for m, on in zip(hold_models, holding) if on],
+                    inner, k * dt, gust_kick if inner is not None else None)
             else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
                 acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[holding], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)
+        elif inner is not None:
+            acc_log[k], _, _ = _step_with_hold(plant, acc_cmd, dt, np.zeros(0, dtype=np.int64), np.zeros((0, 2)),
+                                               np.zeros((0, 2)), 0.0, inner=inner, t0_s=k * dt, gust_kick=gust_kick)
         else:
             acc_log[k] = plant.step(acc_cmd, dt)
-        if cfg.gust is not None:
-            t0, t1 = max(k * dt, cfg.gust.start_s), min((k + 1) * dt, cfg.gust.start_s + cfg.gust.duration_s)
-            if t1 > t0:
-                h = t1 - t0
-                st = plant.states.copy()
-                st[:, 0:2] += 0.5 * a_gust * h * h + a_gust * h * ((k + 1) * dt - t1)
-                st[:, 2:4] += a_gust * h
-                plant.states = st
+        kicked = inner is not None and (cfg.hold_jerk_m_s3 > 0 or not holding.any())   # the sub-steps took the gust
+        if gust_kick is not None and not kicked:
+            gust_kick(k * dt, (k + 1) * dt)
         backstop_active[k] = np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)
         if layered:
             backstop_layer[k] = np.asarray(ctrl.backstop_layer, dtype=np.uint8)
@@ -454,6 +482,8 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
     metrics.update(start_spacing_m=sc.min_start_spacing_m, slot_spacing_m=sc.slot_spacing_m)
     if cfg.acc_lag_s > 0:
         metrics["acc_lag_s"] = cfg.acc_lag_s
+    if inner is not None:
+        metrics["inner_loop"] = {"kp_per_s2": inner.kp, "kd_per_s": inner.kd}
     if failures:
         Ks = [K for K, _ in failures]
         others = np.ones(n, dtype=bool); others[Ks] = False

@@ -92,8 +92,19 @@ class TrackingParams:
     disturbance_feedforward: bool = False
     disturbance_smoothing: float = 0.5      # lam: d_hat = lam d_hat + (1 - lam) residual
     disturbance_deadband_m_s2: float = 0.3  # ~3.7 x the smoothed residual's std per axis under V_o alone (0.08 m/s^2)
+    # the telemetry-rate inner loop (guidance/inner_loop.py; not from the paper; off): between control steps the vehicle
+    # tracks the trajectory the period's command promised, a = sat(a_k + k_p (r_ref - r) + k_d (v_ref - v)), at every
+    # physics sub-step (simulator) or LOCAL_POSITION_NED (autopilot, real time). For an airframe with an acceleration
+    # lag (PlantParams.acc_lag_s; PX4 ~0.154 s), against which eq. 8's held gains ring (docs/default_controller.md)
+    inner_loop: bool = False
+    inner_kp_per_s2: float = 4.0
+    inner_kd_per_s: float = 4.0
 
     def __post_init__(self) -> None:
+        for name in ("inner_kp_per_s2", "inner_kd_per_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v < float("inf")):
+                raise ValueError(f"TrackingParams.{name} must be finite and >= 0, got {v!r}")
         if not 0.0 <= self.disturbance_smoothing < 1.0:
             raise ValueError(f"TrackingParams.disturbance_smoothing must be in [0, 1), got {self.disturbance_smoothing!r}")
         if not self.disturbance_deadband_m_s2 >= 0.0:

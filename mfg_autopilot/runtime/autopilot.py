@@ -59,7 +59,8 @@ from mavlink_bridge import (
 from mavlink_bridge.adsb import adsb_states
 from mfg_autopilot.interface import Neighbours, Observation
 from mfg_autopilot.mission import GeodeticPoint, VehicleFrame
-from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.guidance.inner_loop import InnerLoop
+from mfg_autopilot.presets import make_controller, preset_by_name, with_inner_loop
 from mfg_autopilot.runtime.config import AutopilotConfig, AutopilotError
 from mfg_autopilot.runtime.controller_log import ControllerLog
 from mfg_autopilot.runtime.exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange
@@ -88,7 +89,14 @@ class Autopilot:
                  gc_clock: GcClock | None = None) -> None:
         self.cfg, self.link, self.exchange, self.clog, self.stop = cfg, link, exchange, clog, stop
         self.gc_clock = gc_clock
-        self.preset = preset_by_name(cfg.preset)
+        self.preset = with_inner_loop(preset_by_name(cfg.preset)) if cfg.inner_loop else preset_by_name(cfg.preset)
+        tp = getattr(self.preset, "tracking", None)
+        # real time, TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next
+        self.inner = (InnerLoop(tp.inner_kp_per_s2, tp.inner_kd_per_s, self.preset.cost.c0_per_s, self.preset.cost.v_o,
+                                self.preset.learner.acc_max_m_s2)
+                      if tp is not None and tp.inner_loop and not cfg.lockstep else None)
+        self.inner_setpoints = 0                      # inner-loop setpoints sent since the last step (its record)
+        self._traffic_age_ms: int | None = None       # real time: the age of the traffic set the step used (its record)
         self.sites = cfg.sites_array()
         self.ctrl = make_controller(cfg.mode, self.preset, self.sites[cfg.instance : cfg.instance + 1])
         self.dt_s = self.preset.dt_s
@@ -236,6 +244,9 @@ class Autopilot:
             # datum's flat-earth scaling is within a few cm of the tangent plane over a km)
             d = cfg.mission.datum
             self._home = HomePosition(d.lat_deg, d.lon_deg, d.alt_amsl_m)
+        if cfg.mission is None:
+            # the newest HOME_POSITION: PX4 sets home again at arming, wherever the vehicle is then
+            self._home = self.link.latest(HomePosition) or self._home
         if self._home is None:
             self._home = self.link.wait_for(HomePosition, lambda h: True, cfg.vehicle_timeout_s)
             if self._home is None:
@@ -251,6 +262,21 @@ class Autopilot:
             got = self.link.latest_traffic(cfg.traffic_max_age_s)
             reports = [] if got is None else got[1]
         ids, states = adsb_states(reports, self._home)
+        if cfg.mission is None and states.shape[0] and (self._home.x_m or self._home.y_m):
+            # ADSB_VEHICLE is WGS84, placed north/east of home; home itself is at (x, y) in LOCAL_NED (HOME_POSITION
+            # carries both). Zero in lockstep (a vehicle frozen until OFFBOARD arms where its origin is); in real time
+            # it drifts in the wind before arming: its neighbours were all seen that far off (twenty-seventh session)
+            states = states.copy()
+            states[:, 0] += self._home.x_m
+            states[:, 1] += self._home.y_m
+        if not cfg.lockstep:
+            # real time: the set is as old as the vehicle's clock says (0.03-0.2 s at its 5 Hz): carried forward to the
+            # step at the sensed velocities, as the simulator's sensor sees them at the step (the formation feedback
+            # reads each neighbour's deviation from its particle: 0.3 m of staleness is a 1 m/s^2 brake)
+            self._traffic_age_ms = None if got is None else t_ms - got[0]
+            if self._traffic_age_ms is not None and self._traffic_age_ms > 0 and states.shape[0]:
+                states = states.copy()
+                states[:, 0:2] += states[:, 2:4] * min(self._traffic_age_ms / 1000.0, cfg.traffic_max_age_s)
         return Neighbours(states, np.zeros(len(ids), dtype=np.int64), ids)
 
     def _record(self, k: int, t_s: float, state: np.ndarray, acc: np.ndarray, info, obs: Observation,
@@ -276,6 +302,11 @@ class Autopilot:
             rec["latency_ms"], rec["latency_wake_ms"], rec["latency_compute_ms"] = (x * 1e3 for x in latency_s)
         if timing is not None:
             rec["timing"] = timing
+        if self._traffic_age_ms is not None:
+            rec["traffic_age_ms"] = self._traffic_age_ms      # real time: the sensed traffic set's age at this step
+        if self.inner is not None:
+            rec["inner_setpoints"] = self.inner_setpoints      # sent by the inner loop since the previous step
+            self.inner_setpoints = 0
         self.clog.write(rec)
 
     def _arrived(self, state: np.ndarray) -> bool:
@@ -382,7 +413,10 @@ class Autopilot:
             # one wake-up per tick (stop.set() from the signal handler ends the wait at once); the
             # wait is re-checked against the wall clock at least every second
             while not self.stop.is_set() and time.time() < tick_unix:
-                self.stop.wait(min(1.0, max(0.0, tick_unix - time.time())))
+                if self.inner is not None and self.inner.started and not stale:
+                    self._inner_track(min(0.25, max(0.0, tick_unix - time.time())))
+                else:
+                    self.stop.wait(min(1.0, max(0.0, tick_unix - time.time())))
             if self.stop.is_set():
                 return "signal"
             tick = time.monotonic()
@@ -421,6 +455,8 @@ class Autopilot:
             sent_monotonic_s = self.link.send_acc_setpoint(sp, z_m=self.z_sp_local_m)
             clock.mark()
             self.link.set_held_setpoint(sp, z_m=self.z_sp_local_m)
+            if self.inner is not None:
+                self.inner.start(p.time_boot_ms / 1000.0, state, acc)
             self._finish()
             clock.mark()
             # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the
@@ -443,6 +479,24 @@ class Autopilot:
                     return "arrived"
             else:
                 arrived_since = None
+
+    def _inner_track(self, timeout_s: float) -> None:
+        """Between real-time steps (TrackingParams.inner_loop): wait up to timeout_s for the next LOCAL_POSITION_NED and
+        send the step's command corrected towards the trajectory it promised (guidance/inner_loop.py), as the setpoint
+        and as the held one the stream repeats. Not more than two periods after the step (a late step: hold it)."""
+        last = self.link.latest_local_position()
+        try:
+            p = self.link.wait_local_position(None if last is None else last.time_boot_ms, timeout_s=timeout_s)
+        except TelemetryTimeout:
+            return
+        t_s = p.time_boot_ms / 1000.0
+        if t_s - self.inner.start_time_s > 2.0 * self.dt_s:
+            return
+        acc = self.inner.acc_m_s2(t_s, self.swarm_state(p).reshape(1, 4))[0]
+        sp = self._setpoint(acc)
+        self.link.send_acc_setpoint(sp, z_m=self.z_sp_local_m)
+        self.link.set_held_setpoint(sp, z_m=self.z_sp_local_m)
+        self.inner_setpoints += 1
 
     def _await_vehicle_return(self) -> None:
         """The vehicle's heartbeat vanished: stop commanding, wait for it, redo the handshake."""

@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "vehicles); default: every vehicle to the origin")
     p.add_argument("--lockstep", action="store_true", help="one control step per simulated dt (docs/lockstep.md)")
     p.add_argument("--steps", type=int, default=200, help="mission time limit in control steps (default: 200)")
+    p.add_argument("--inner-loop", action="store_true",
+                   help="real time: track each step's command at every LOCAL_POSITION_NED until the next step "
+                        "(against the airframe's acceleration lag; default preset only)")
     p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
     p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")
@@ -95,7 +98,7 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
         gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
         vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key, rt_priority=args.rt_priority,
-        log_fpk_weights_every=args.log_fpk_weights_every, mission=mission)
+        log_fpk_weights_every=args.log_fpk_weights_every, mission=mission, inner_loop=args.inner_loop)
 
 
 def main(argv: list[str] | None = None) -> int:
