@@ -23,8 +23,9 @@ answer to). If some vehicle has not reported t within ``--deadline-s`` of the fi
 of t, the world logs it, answers with that vehicle's last known state (what a sensor would
 still see), and stops waiting for it until it reports again.
 
-Real time: every report is answered at once from the latest state of each vehicle (states
-older than ``--stale-s`` are dropped).
+Real time: every report is answered at once from the latest state of each vehicle, carried
+forward at its velocity from the report's arrival to the answer (a sensor sees a vehicle where
+it is now, not where it last reported; states older than ``--stale-s`` are dropped).
 
 The in-range rule is ``mock_vehicle.proximity.sensed_pairs`` on all N states in id order,
 exactly the simulator's query.
@@ -215,9 +216,21 @@ class WorldState:
         return [answers[v] for v in reps]
 
     def _answer_realtime(self, vehicle_id: int, t: int, now: float) -> Answer:
-        states = {v: st for v, (_t, st, r) in self._latest.items() if now - r <= self.p.stale_s or v == vehicle_id}
+        # a sensor sees the others where they are now: each last report (up to 1 / traffic rate old, 0.2 s at 5 Hz)
+        # carried forward at its velocity to this answer (the reporter's own state is its report's). Without it the
+        # others looked ~0.3 m behind themselves at 2 m/s, and a formation whose UAVs each saw the others lag braked
+        # together, ever further behind its plan (mfg-swarm run --realtime, twenty-seventh session)
+        states = {v: (st if v == vehicle_id else _carried(st, now - r))
+                  for v, (_t, st, r) in self._latest.items() if now - r <= self.p.stale_s or v == vehicle_id}
         arr, known = self._array(states)
         return self._sets([vehicle_id], t, arr, known)[vehicle_id]
+
+
+def _carried(state: np.ndarray, age_s: float) -> np.ndarray:
+    """state [x, y, vx, vy] carried forward age_s (>= 0) at constant velocity."""
+    out = state.copy()
+    out[0:2] += out[2:4] * max(0.0, age_s)
+    return out
 
 
 def serve(params: WorldParams, listen: tuple[str, int], stop: threading.Event, sock: socket.socket | None = None) -> WorldState:

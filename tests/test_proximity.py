@@ -246,6 +246,14 @@ def test_world_realtime_answers_at_once_from_fresh_states():
     assert a.ids.tolist() == []
 
 
+def test_world_realtime_sees_the_others_where_they_are_now():
+    # a sensor measures now: vehicle 1's last report (0.4 s before vehicle 0's) is carried forward at its velocity
+    w = WorldState(WorldParams(n=2, sensor_range_m=10.0, lockstep=False, stale_s=1.0))
+    w.report(1, 120, _state(3.0), now=0.1)
+    (a,) = w.report(0, 200, _state(0.0), now=0.5)
+    np.testing.assert_allclose(a.states[0], [3.0 + 0.5 * 0.4, -0.25 * 0.4, 0.5, -0.25])
+
+
 def test_world_datagrams_round_trip_and_garbage_is_refused():
     kind, vid, t, ids, st = unpack(pack_report(7, 2500, np.float32([1.5, -2.25, 0.1, 0.2])))
     assert (kind, vid, t, ids.tolist()) == (KIND_REPORT, 7, 2500, [7])
@@ -409,6 +417,11 @@ class _StubLink:
     def latest_traffic(self, max_age_s):
         return max(self.sets.items()) if self.sets else None
 
+    def latest(self, msg_type):
+        return self.home if msg_type is HomePosition else None
+
+    home = None
+
 
 def _autopilot(link, lockstep=True, preset="default"):
     from mfg_autopilot.runtime.autopilot import Autopilot, AutopilotConfig, ControllerLog
@@ -416,6 +429,22 @@ def _autopilot(link, lockstep=True, preset="default"):
     cfg = AutopilotConfig(instance=0, connect="udpin:127.0.0.1:1", mode="mfg", preset=preset, n=3, lockstep=lockstep,
                           sites_m=((0.0, 0.0), (1.0, 0.0), (2.0, 0.0)), step_timeout_s=0.1)
     return Autopilot(cfg, link, None, ControllerLog(None), threading.Event())
+
+
+def test_real_time_traffic_is_carried_to_the_step_and_placed_from_home_where_home_is():
+    # Given a traffic set stamped 1.5 s (vehicle clock) and a step at 1.6 s, in real time
+    states = np.array([[4.0, 1.0, 2.0, -1.0], [6.0, -2.0, 0.0, 3.0]])
+    link = _StubLink({1500: traffic_reports(np.array([1, 2]), states, 1500)})
+    got = _autopilot(link, lockstep=False)._observe(3, np.zeros(4), 1.6).sensed.states
+    # Then each neighbour is where it is at the step: its sensed position carried 0.1 s at its sensed velocity
+    want = quantise_sensed_states(states)
+    want[:, 0:2] += 0.1 * want[:, 2:4]
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    # And a HOME_POSITION away from the LOCAL_NED origin (PX4 sets home where it arms: a vehicle that drifted before)
+    # places the traffic from there: ADSB_VEHICLE's latitude/longitude are north/east of home, home is at (x, y)
+    link.home = HomePosition(*DEFAULT_HOME_DEG, 488.0, 0.4, -0.3, 0.0)
+    got = _autopilot(link, lockstep=False)._observe(3, np.zeros(4), 1.5).sensed.states
+    np.testing.assert_allclose(got[:, 0:2], quantise_sensed_states(states)[:, 0:2] + [0.4, -0.3], atol=1e-9)
 
 
 def test_runtime_fills_observation_sensed_from_the_steps_traffic_set():
