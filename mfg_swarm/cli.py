@@ -105,8 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the mock vehicles fly their acceleration command through a first-order lag of TAU s "
                           "(mock-vehicle --acc-lag-s; PX4's attitude loop: about 0.154 s); default 0")
     run.add_argument("--inner-loop", action="store_true",
-                     help="real time (--realtime) only: every controller tracks its command at each LOCAL_POSITION_NED "
-                          "between steps (mfg-autopilot --inner-loop; against --acc-lag-s)")
+                     help="every controller tracks its command at each LOCAL_POSITION_NED between steps "
+                          "(mfg-autopilot --inner-loop; against --acc-lag-s); lockstep steps the mocks by sub-steps")
     run.add_argument("--time-limit-s", type=float, default=None, help="stop the swarm after this wall time")
     run.add_argument("--startup-timeout-s", type=float, default=None,
                      help="every controller must reach OFFBOARD within this (default: scales with N, the cores and "
@@ -293,9 +293,6 @@ def _cmd_run(args) -> int:
                     progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
                     zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config,
                     controller_rt_priority=args.rt_priority, acc_lag_s=args.acc_lag_s, inner_loop=args.inner_loop)
-    if args.inner_loop and args.lockstep:
-        raise ValueError("--inner-loop needs the telemetry between control steps: fly it with --realtime (a lockstep "
-                         "vehicle steps a whole period per setpoint)")
     if args.inner_loop:
         with_inner_loop(preset_by_name(args.preset))    # a preset without it fails before any process starts
     try:

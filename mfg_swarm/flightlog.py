@@ -104,18 +104,28 @@ def read_controller_log(path: str | Path) -> ControllerRecord:
     return ControllerRecord(steps, events, end, start)
 
 
-def lockstep_grid(track: VehicleTrack, dt_ms: int, steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def lockstep_grid(track: VehicleTrack, dt_ms: int, steps: int,
+                  sub_ms: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lockstep: the state at each t_k = k dt (k = 0..steps) and the setpoint that advanced
     step k (stamped t_k). Missing samples are NaN. Returns valid (steps+1,) bool,
-    states (steps+1, 4), acc (steps, 2)."""
+    states (steps+1, 4), acc (steps, 2). ``sub_ms``: a vehicle stepped by sub-steps (the inner
+    loop): step k's acceleration is the mean of the setpoints that advanced its sub-steps
+    t_k, t_k + sub, ... (NaN if one is missing), as the simulator logs it."""
     states = np.full((steps + 1, 4), np.nan)
     acc = np.full((steps, 2), np.nan)
     for t, s in zip(track.pos_time_boot_ms, track.state):
         if t % dt_ms == 0 and 0 <= t // dt_ms <= steps:
             states[t // dt_ms] = s
+    unit = dt_ms if sub_ms is None else sub_ms
+    first: dict[int, np.ndarray] = {}
     for t, a in zip(track.sp_time_boot_ms, track.sp_acc):
-        if t % dt_ms == 0 and 0 <= t // dt_ms < steps and np.all(np.isnan(acc[t // dt_ms])):
-            acc[t // dt_ms] = a           # the first one stamped t_k is the one that advanced the step
+        if t % unit == 0 and 0 <= t < steps * dt_ms and t not in first:
+            first[int(t)] = np.asarray(a, dtype=float)     # the first one stamped t is the one that advanced it
+    per = dt_ms // unit
+    for k in range(steps):
+        got = [first.get(k * dt_ms + j * unit) for j in range(per)]
+        if all(g is not None for g in got):
+            acc[k] = got[0] if per == 1 else np.mean(got, axis=0)
     return ~np.isnan(states[:, 0]), states, acc
 
 

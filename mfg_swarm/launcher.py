@@ -481,7 +481,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--wind-diffusion", ",".join(repr(float(v)) for row in wind.wind_diffusion_m_s for v in row),
                     "--acc-limit-m-s2", repr(float(preset.learner.acc_max_m_s2)), "--physics-dt-s", repr(float(physics_dt_s)),
                     *([] if cfg.lockstep else ["--traffic-rate-hz", repr(REALTIME_TRAFFIC_RATE_HZ)]),
-                    "--dt-s", repr(float(preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
+                    "--dt-s", repr(float(physics_dt_s if cfg.inner_loop and cfg.lockstep else preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
             if cfg.acc_lag_s > 0:
@@ -623,6 +623,8 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     T = cfg.steps
     dt = preset.dt_s
     dt_ms = int(round(dt * 1000))
+    # the inner loop steps lockstep vehicles by their sub-steps: each step's acceleration is their mean
+    sub_ms = int(round((cfg.physics_dt_s or LOCKSTEP_PHYSICS_DT_S) * 1000)) if cfg.inner_loop and cfg.lockstep else None
     states = np.full((T + 1, n, 4), np.nan)
     acc = np.full((T, n, 2), np.nan)
     tracks = [read_vehicle_tlog(out / "vehicles" / f"vehicle{i}.tlog", i + 1) for i in range(n)]
@@ -632,7 +634,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     t0 = None
     if cfg.lockstep:
         for i, tr in enumerate(tracks):
-            _, states[:, i], acc[:, i] = lockstep_grid(tr, dt_ms, T)
+            _, states[:, i], acc[:, i] = lockstep_grid(tr, dt_ms, T, sub_ms)
     else:
         starts = [e["wall_s"] for lg in logs for e in lg.events if e.get("what") == "offboard"]
         t0 = min(starts) if starts else min((tr.pos_unix_s[0] for tr in tracks if tr.pos_unix_s.size), default=0.0)

@@ -167,7 +167,7 @@ class SimConfig:
 def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold_pos_m: np.ndarray,
                     hold_acc_m_s2_prev: np.ndarray, jerk_m_s3: float,
                     first_sub: np.ndarray | None = None,
-                    models: list[Px4AutoXY] | None = None, inner: InnerLoop | None = None, t0_s: float = 0.0,
+                    models: list[Px4AutoXY] | None = None, inner=None, t0_s: float = 0.0,
                     gust_kick=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One control step with vehicle(s) K (an index, or an index array: then hold_pos_m and hold_acc_m_s2_prev are
     (len(K), 2)) in Hold, every physics sub-step apart (as the mock vehicle flies it): their acceleration is the Hold
@@ -183,8 +183,8 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
     ``models`` (len(K),): PX4's trajectory and position loop per vehicle (``hold_model`` "px4") instead of the PD and
     the jerk limit; a model not yet active is activated at the vehicle's first Hold sub-step (its state then, its Hold
     point, the acceleration it flew), as the mock activates it at the mode switch.
-    ``inner`` (TrackingParams.inner_loop), started at this step's time ``t0_s``: the others fly its command at each
-    sub-step instead of holding ``acc_cmd``, and ``gust_kick(t_a, t_b)`` (if given) adds the gust of each sub-step
+    ``inner(i, states)`` (TrackingParams.inner_loop): the others fly its command (n, 2) at each sub-step i instead of
+    holding ``acc_cmd``, and ``gust_kick(t_a, t_b)`` (if given) adds the gust of each sub-step
     [t_a, t_b] right after it, so that the inner loop meets it inside the period.
     Returns (the applied accelerations, K's the mean over the sub-steps - everyone's with ``inner``; K's last
     acceleration (len(K), 2); the Hold points (len(K), 2))."""
@@ -199,7 +199,7 @@ def _step_with_hold(plant: SwarmPlant, acc_cmd: np.ndarray, dt_s: float, K, hold
     mean_all = np.zeros_like(acc) if inner is not None else None
     for i in range(k_sub):
         if inner is not None:
-            acc = inner.acc_m_s2(t0_s + i * h, plant.states)
+            acc = inner(i, plant.states)
         starting = first == i
         if i > 0 and starting.any():          # a failure inside the step: Hold from this sub-step's state
             hold_pos_m[starting] = braking_stop_m(plant.states[K[starting]])
@@ -373,6 +373,13 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             plant.states = st
 
     gust_kick = _gust_kick if cfg.gust is not None else None
+    dt_ms, h_ms = int(round(dt * 1000)), int(round(h_sub * 1000))
+    k_now = [0]                                   # the control step the sub-steps belong to
+
+    def inner_acc(i: int, states: np.ndarray) -> np.ndarray:
+        """The inner loop's commands at sub-step i as a lockstep process computes them: from the float32 telemetry, on
+        the vehicle's ms clock, sent as float32 (mfg_autopilot.runtime.autopilot._lockstep_inner)."""
+        return f32(inner.acc_m_s2((k_now[0] * dt_ms + i * h_ms) / 1000.0, f32(states)))
     backstop_active = np.zeros((T, n), dtype=bool)
     # which safety layer made each command (safety.backstop.Layer bits), for controllers that say (the default ones)
     layered = hasattr(ctrl, "backstop_layer")
@@ -414,8 +421,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             if ref is not None and ref[0] == k:
                 plan_pos[k] = ref[1]
         acc_cmd = f32(info.acc_m_s2)
+        k_now[0] = k
         if inner is not None:
-            inner.start(k * dt, obs, acc_cmd)
+            inner.start(k * dt_ms / 1000.0, obs, acc_cmd)
         if failures and any((k + 1) * dt > t + 1e-9 for _, t in failures):
             # the failed vehicles, each from its own failure on: at this control instant, or at a physics sub-step
             # inside this step (first_sub), flying its command until then
@@ -433,13 +441,13 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                     plant, acc_cmd, dt, Ks, holds_pos[holding], holds_acc[holding], cfg.hold_jerk_m_s3,
                     first_sub[holding],
                     None if hold_models is None else [m for m, on in zip(hold_models, holding) if on],
-                    inner, k * dt, gust_kick if inner is not None else None)
+                    inner_acc if inner is not None else None, k * dt, gust_kick if inner is not None else None)
             else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
                 acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[holding], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)
         elif inner is not None:
             acc_log[k], _, _ = _step_with_hold(plant, acc_cmd, dt, np.zeros(0, dtype=np.int64), np.zeros((0, 2)),
-                                               np.zeros((0, 2)), 0.0, inner=inner, t0_s=k * dt, gust_kick=gust_kick)
+                                               np.zeros((0, 2)), 0.0, inner=inner_acc, t0_s=k * dt, gust_kick=gust_kick)
         else:
             acc_log[k] = plant.step(acc_cmd, dt)
         kicked = inner is not None and (cfg.hold_jerk_m_s3 > 0 or not holding.any())   # the sub-steps took the gust

@@ -94,9 +94,10 @@ class Autopilot:
         # real time, TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next
         self.inner = (InnerLoop(tp.inner_kp_per_s2, tp.inner_kd_per_s, self.preset.cost.c0_per_s, self.preset.cost.v_o,
                                 self.preset.learner.acc_max_m_s2)
-                      if tp is not None and tp.inner_loop and not cfg.lockstep else None)
+                      if tp is not None and tp.inner_loop else None)
         self.inner_setpoints = 0                      # inner-loop setpoints sent since the last step (its record)
         self._traffic_age_ms: int | None = None       # real time: the age of the traffic set the step used (its record)
+        self._warned_whole_period = False             # lockstep inner loop without sub-steps: said once
         self.sites = cfg.sites_array()
         self.ctrl = make_controller(cfg.mode, self.preset, self.sites[cfg.instance : cfg.instance + 1])
         self.dt_s = self.preset.dt_s
@@ -377,8 +378,33 @@ class Autopilot:
             self._prepare(k + 1)        # the next position is stamped after t_ms: step k + 1 or later
             clock.mark()
             p = self._lockstep_await_position(sp, t_ms, deadline)
+            if self.inner is not None:
+                p = self._lockstep_inner(p, t_ms, (k + 1) * self.dt_ms, state, acc)
             clock.mark()
             carried = clock.phases(("log", "wait"), first=4)
+
+    def _lockstep_inner(self, p: LocalPositionNed, t0_ms: int, t_next_ms: int, state0: np.ndarray,
+                        acc0: np.ndarray) -> LocalPositionNed:
+        """Lockstep with the inner loop (TrackingParams.inner_loop): a vehicle stepped by its physics sub-step
+        (``mock-vehicle --lockstep --dt-s`` = its ``--physics-dt-s``; ``mfg-swarm run`` starts it so) answers each
+        setpoint with the position one sub-step on. Until the next control step (t_next_ms) every position gets the
+        step's command corrected towards its reference (guidance/inner_loop.py), stamped with the position's time.
+        Times on the vehicle's ms clock, as the simulator counts them. Returns the position at (or after) t_next_ms."""
+        # the command as the vehicle got it (float32 on the wire), as the simulator starts it
+        self.inner.start(t0_ms / 1000.0, state0.reshape(1, 4), np.float32(acc0).astype(float).reshape(1, 2))
+        if p.time_boot_ms >= t_next_ms and not self._warned_whole_period:
+            self._warned_whole_period = True
+            self.clog.event("inner_loop_idle", note="the vehicle steps a whole control period per setpoint: the inner "
+                                                    "loop has no position in between (mock-vehicle --dt-s = its "
+                                                    "--physics-dt-s steps it by sub-steps)")
+        while p.time_boot_ms < t_next_ms and not self.stop.is_set():
+            t_ms = p.time_boot_ms
+            acc = self.inner.acc_m_s2(t_ms / 1000.0, self.swarm_state(p).reshape(1, 4))[0]
+            sp = self._setpoint(acc)
+            self.link.send_acc_setpoint(sp, t_ms, z_m=self.z_sp_local_m)
+            self.inner_setpoints += 1
+            p = self._lockstep_await_position(sp, t_ms, time.monotonic() + self.cfg.step_timeout_s)
+        return p
 
     def _lockstep_await_position(self, sp: tuple[float, float, float], t_ms: int, deadline: float) -> LocalPositionNed:
         """Wait for the position stamped after t_ms (the setpoint stamped t_ms was sent),
@@ -456,7 +482,7 @@ class Autopilot:
             clock.mark()
             self.link.set_held_setpoint(sp, z_m=self.z_sp_local_m)
             if self.inner is not None:
-                self.inner.start(p.time_boot_ms / 1000.0, state, acc)
+                self.inner.start(p.time_boot_ms / 1000.0, state, np.float32(acc).astype(float))
             self._finish()
             clock.mark()
             # arrival of this LOCAL_POSITION_NED at the socket (kernel timestamp where the

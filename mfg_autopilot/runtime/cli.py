@@ -44,8 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lockstep", action="store_true", help="one control step per simulated dt (docs/lockstep.md)")
     p.add_argument("--steps", type=int, default=200, help="mission time limit in control steps (default: 200)")
     p.add_argument("--inner-loop", action="store_true",
-                   help="real time: track each step's command at every LOCAL_POSITION_NED until the next step "
-                        "(against the airframe's acceleration lag; default preset only)")
+                   help="track each step's command at every LOCAL_POSITION_NED until the next step (against the "
+                        "airframe's acceleration lag; default preset only); lockstep: start the vehicle with "
+                        "--dt-s = its --physics-dt-s so that it answers each sub-step")
     p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
     p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")

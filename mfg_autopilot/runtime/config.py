@@ -61,8 +61,9 @@ class AutopilotConfig:
     origin_timeout_s: float = 60.0            # wait this long for the vehicle's EKF origin (GPS_GLOBAL_ORIGIN)
     takeoff_timeout_s: float = 120.0          # ... and for the climb to the group's altitude
     land_timeout_s: float = 120.0             # ... and for touchdown and disarm after the mission
-    inner_loop: bool = False                  # real time: track each step's command at every LOCAL_POSITION_NED between
-                                              # steps (TrackingParams.inner_loop, guidance/inner_loop.py)
+    inner_loop: bool = False                  # track each step's command at every LOCAL_POSITION_NED between steps
+                                              # (TrackingParams.inner_loop, guidance/inner_loop.py); lockstep: a
+                                              # vehicle stepped by its physics sub-step
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -77,9 +78,6 @@ class AutopilotConfig:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
         if self.rt_priority is not None:
             check_rt_priority(self.rt_priority)
-        if self.inner_loop and self.lockstep:
-            raise ValueError("--inner-loop tracks the command between control steps from the telemetry in between; a "
-                             "lockstep vehicle sends none (it steps a whole period per setpoint): fly it in real time")
         if self.log_fpk_weights_every < 0:
             raise ValueError(f"--log-fpk-weights-every must be >= 0, got {self.log_fpk_weights_every}")
         if self.mission is not None:
