@@ -91,7 +91,8 @@ class Autopilot:
         self.gc_clock = gc_clock
         self.preset = with_inner_loop(preset_by_name(cfg.preset)) if cfg.inner_loop else preset_by_name(cfg.preset)
         tp = getattr(self.preset, "tracking", None)
-        # real time, TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next
+        # TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next step (real
+        # time: _inner_track; lockstep, a vehicle stepped by sub-steps: _lockstep_inner)
         self.inner = (InnerLoop(tp.inner_kp_per_s2, tp.inner_kd_per_s, self.preset.cost.c0_per_s, self.preset.cost.v_o,
                                 self.preset.learner.acc_max_m_s2)
                       if tp is not None and tp.inner_loop else None)
@@ -271,9 +272,10 @@ class Autopilot:
             states[:, 0] += self._home.x_m
             states[:, 1] += self._home.y_m
         if not cfg.lockstep:
-            # real time: the set is as old as the vehicle's clock says (0.03-0.2 s at its 5 Hz): carried forward to the
-            # step at the sensed velocities, as the simulator's sensor sees them at the step (the formation feedback
-            # reads each neighbour's deviation from its particle: 0.3 m of staleness is a 1 m/s^2 brake)
+            # real time: the set is as old as the vehicle's clock says (up to 1 / its traffic rate, 0.05-0.2 s): carried
+            # forward to the step at the sensed velocities, as the simulator's sensor sees them at the step (the
+            # formation feedback reads each neighbour's deviation from its particle: 0.3 m of staleness is a 1 m/s^2
+            # brake; docs/proximity.md, "Real time needs fresh traffic")
             self._traffic_age_ms = None if got is None else t_ms - got[0]
             if self._traffic_age_ms is not None and self._traffic_age_ms > 0 and states.shape[0]:
                 states = states.copy()
