@@ -358,9 +358,7 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                    if cfg.hold_model == "px4" else None)
     a_gust = gust_acc_m_s2(cfg.gust, cfg.seed, n) if cfg.gust is not None else None
     h_sub = dt / plant.params.substeps(dt)        # a failure inside a control step begins at a physics sub-step
-    tracking_p = getattr(preset, "tracking", None)
-    inner = (InnerLoop(tracking_p.inner_kp_per_s2, tracking_p.inner_kd_per_s, preset.cost.c0_per_s, preset.cost.v_o,
-                       preset.learner.acc_max_m_s2) if tracking_p is not None and tracking_p.inner_loop else None)
+    inner = InnerLoop.for_preset(preset)
 
     def _gust_kick(t_a: float, t_b: float) -> None:
         """The gust's share of [t_a, t_b] added to the states at t_b (it acts beyond the plant's model)."""
@@ -374,12 +372,12 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
 
     gust_kick = _gust_kick if cfg.gust is not None else None
     dt_ms, h_ms = int(round(dt * 1000)), int(round(h_sub * 1000))
-    k_now = [0]                                   # the control step the sub-steps belong to
 
     def inner_acc(i: int, states: np.ndarray) -> np.ndarray:
-        """The inner loop's commands at sub-step i as a lockstep process computes them: from the float32 telemetry, on
-        the vehicle's ms clock, sent as float32 (mfg_autopilot.runtime.autopilot._lockstep_inner)."""
-        return f32(inner.acc_m_s2((k_now[0] * dt_ms + i * h_ms) / 1000.0, f32(states)))
+        """The inner loop's commands at sub-step i of the step it was started at, as a lockstep process computes them:
+        from the float32 telemetry, on the vehicle's ms clock, sent as float32 (autopilot._lockstep_inner)."""
+        t0_ms = int(round(inner.start_time_s * 1000))
+        return f32(inner.acc_m_s2((t0_ms + i * h_ms) / 1000.0, f32(states)))
     backstop_active = np.zeros((T, n), dtype=bool)
     # which safety layer made each command (safety.backstop.Layer bits), for controllers that say (the default ones)
     layered = hasattr(ctrl, "backstop_layer")
@@ -421,9 +419,9 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
             if ref is not None and ref[0] == k:
                 plan_pos[k] = ref[1]
         acc_cmd = f32(info.acc_m_s2)
-        k_now[0] = k
         if inner is not None:
             inner.start(k * dt_ms / 1000.0, obs, acc_cmd)
+        kicked = False              # the sub-steps took this step's gust (the inner loop meets it inside the period)
         if failures and any((k + 1) * dt > t + 1e-9 for _, t in failures):
             # the failed vehicles, each from its own failure on: at this control instant, or at a physics sub-step
             # inside this step (first_sub), flying its command until then
@@ -442,15 +440,16 @@ def simulate(cfg: SimConfig, progress: bool | None = None) -> tuple[Trajectories
                     first_sub[holding],
                     None if hold_models is None else [m for m, on in zip(hold_models, holding) if on],
                     inner_acc if inner is not None else None, k * dt, gust_kick if inner is not None else None)
+                kicked = inner is not None
             else:       # no jerk limit: the PD held over the control step, at the airframe's limit from the first instant
                 acc_cmd[Ks] = hold_acc_m_s2(obs[Ks], holds_pos[holding], plant.params.acc_limit_m_s2)
                 acc_log[k] = plant.step(acc_cmd, dt)
         elif inner is not None:
             acc_log[k], _, _ = _step_with_hold(plant, acc_cmd, dt, np.zeros(0, dtype=np.int64), np.zeros((0, 2)),
                                                np.zeros((0, 2)), 0.0, inner=inner_acc, t0_s=k * dt, gust_kick=gust_kick)
+            kicked = True
         else:
             acc_log[k] = plant.step(acc_cmd, dt)
-        kicked = inner is not None and (cfg.hold_jerk_m_s3 > 0 or not holding.any())   # the sub-steps took the gust
         if gust_kick is not None and not kicked:
             gust_kick(k * dt, (k + 1) * dt)
         backstop_active[k] = np.asarray(getattr(ctrl, "backstop_active", np.zeros(n, dtype=bool)), dtype=bool)

@@ -220,17 +220,15 @@ class WorldState:
         # carried forward at its velocity to this answer (the reporter's own state is its report's). Without it the
         # others looked ~0.3 m behind themselves at 2 m/s, and a formation whose UAVs each saw the others lag braked
         # together, ever further behind its plan (mfg-swarm run --realtime, twenty-seventh session)
-        states = {v: (st if v == vehicle_id else _carried(st, now - r))
-                  for v, (_t, st, r) in self._latest.items() if now - r <= self.p.stale_s or v == vehicle_id}
+        ages = np.zeros(self.p.n)
+        states = {}
+        for v, (_t, st, r) in self._latest.items():
+            if now - r <= self.p.stale_s or v == vehicle_id:
+                states[v] = st
+                ages[v] = 0.0 if v == vehicle_id else max(0.0, now - r)
         arr, known = self._array(states)
+        arr[:, 0:2] += arr[:, 2:4] * ages[:, None]          # unknown rows have age 0 (and no velocity)
         return self._sets([vehicle_id], t, arr, known)[vehicle_id]
-
-
-def _carried(state: np.ndarray, age_s: float) -> np.ndarray:
-    """state [x, y, vx, vy] carried forward age_s (>= 0) at constant velocity."""
-    out = state.copy()
-    out[0:2] += out[2:4] * max(0.0, age_s)
-    return out
 
 
 def serve(params: WorldParams, listen: tuple[str, int], stop: threading.Event, sock: socket.socket | None = None) -> WorldState:

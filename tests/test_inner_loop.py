@@ -36,7 +36,8 @@ def test_the_reference_is_eq_9_without_noise_with_the_command_held(c0):
     np.testing.assert_allclose(v, v_e, atol=1e-5)
     # at t = 0 it is the start state, and a time per row is taken row by row
     r, v = reference_state(np.vstack([r0, r0]), np.vstack([v0, v0]), np.vstack([a, a]), np.array([0.0, 0.5]), c0, v_o)
-    np.testing.assert_allclose(r[0], r0[0]) and np.testing.assert_allclose(v[0], v0[0])
+    np.testing.assert_allclose(r[0], r0[0])
+    np.testing.assert_allclose(v[0], v0[0])
     np.testing.assert_allclose(r[1], r_e[0], atol=1e-5)
 
 
@@ -115,10 +116,14 @@ def test_in_the_simulator_the_inner_loop_restores_the_tracking_the_lag_took():
 
 def test_with_the_inner_loop_a_gust_is_met_inside_the_period():
     # the gust acts at every physics sub-step (not added after the period): the same total push, the inner loop sees it
-    preset = with_inner_loop(DEFAULT)
-    _, m = simulate(SimConfig(make_scenario("paper", 36, 43), "mfg", preset, seed=43, steps=160, gust=GustParams(),
-                              acc_lag_s=0.154), progress=False)
-    assert m["collision_pairs"] == 0 and m["gust"]["acc_m_s2"] > 0
+    def fly(inner: bool):
+        _, m = simulate(SimConfig(make_scenario("paper", 36, 43), "mfg", with_inner_loop(DEFAULT, inner), seed=43,
+                                  steps=160, gust=GustParams(), acc_lag_s=0.154), progress=False)
+        return m
+    held, tracked = fly(False), fly(True)
+    assert tracked["collision_pairs"] == 0 and tracked["gust"]["acc_m_s2"] > 0
+    # fought at telemetry rate, the gust blows the UAVs off their particles far less (6.4 m held, 0.61 m measured)
+    assert tracked["guarantee"]["tracking_error_max_m"] < 0.3 * held["guarantee"]["tracking_error_max_m"]
 
 
 def test_a_preset_without_the_default_guidance_has_no_inner_loop(tmp_path, capsys):

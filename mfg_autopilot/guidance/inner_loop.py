@@ -70,6 +70,15 @@ class InnerLoop:
         self.a_max = float(a_max_m_s2)
         self._start: tuple[float, np.ndarray, np.ndarray] | None = None     # (time s, states (n, 4), commands (n, 2))
 
+    @classmethod
+    def for_preset(cls, preset) -> "InnerLoop | None":
+        """The preset's inner loop (its TrackingParams' gains, its model's c0 and v_o, its acceleration limit), or None
+        if it has none or it is off."""
+        tp = getattr(preset, "tracking", None)
+        if tp is None or not tp.inner_loop:
+            return None
+        return cls(tp.inner_kp_per_s2, tp.inner_kd_per_s, preset.cost.c0_per_s, preset.cost.v_o, preset.learner.acc_max_m_s2)
+
     def start(self, time_s: float, states: np.ndarray, acc_m_s2: np.ndarray) -> None:
         """A control step at time_s: the states it observed (n, 4) and the commands it sent (n, 2)."""
         self._start = (float(time_s), np.array(states, dtype=float).reshape(-1, 4),

@@ -89,13 +89,11 @@ class Autopilot:
                  gc_clock: GcClock | None = None) -> None:
         self.cfg, self.link, self.exchange, self.clog, self.stop = cfg, link, exchange, clog, stop
         self.gc_clock = gc_clock
-        self.preset = with_inner_loop(preset_by_name(cfg.preset)) if cfg.inner_loop else preset_by_name(cfg.preset)
-        tp = getattr(self.preset, "tracking", None)
+        preset = preset_by_name(cfg.preset)
+        self.preset = with_inner_loop(preset) if cfg.inner_loop else preset
         # TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next step (real
         # time: _inner_track; lockstep, a vehicle stepped by sub-steps: _lockstep_inner)
-        self.inner = (InnerLoop(tp.inner_kp_per_s2, tp.inner_kd_per_s, self.preset.cost.c0_per_s, self.preset.cost.v_o,
-                                self.preset.learner.acc_max_m_s2)
-                      if tp is not None and tp.inner_loop else None)
+        self.inner = InnerLoop.for_preset(self.preset)
         self.inner_setpoints = 0                      # inner-loop setpoints sent since the last step (its record)
         self._traffic_age_ms: int | None = None       # real time: the age of the traffic set the step used (its record)
         self._warned_whole_period = False             # lockstep inner loop without sub-steps: said once
