@@ -125,6 +125,11 @@ class RunConfig:
     mission_file: Path | None = None          # ... and its file, handed to every controller
     on_poll: Callable[[], object] | None = None   # called every 0.2 s while the swarm flies and once after (run --live)
 
+    @property
+    def plant_dt_s(self) -> float:
+        """The mocks' plant sub-step: physics_dt_s, or by default the lockstep or real-time one."""
+        return self.physics_dt_s or (LOCKSTEP_PHYSICS_DT_S if self.lockstep else REALTIME_PHYSICS_DT_S)
+
 
 def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200,
                      exclude: frozenset[int] | set[int] = frozenset()) -> tuple[list[int], list[int]]:
@@ -442,7 +447,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
 
     py = cfg.python
     startup_s = cfg.startup_timeout_s if cfg.startup_timeout_s is not None else default_startup_timeout_s(n)
-    physics_dt_s = cfg.physics_dt_s or (LOCKSTEP_PHYSICS_DT_S if cfg.lockstep else REALTIME_PHYSICS_DT_S)
+    physics_dt_s = cfg.plant_dt_s
     wind = plant_params_for(preset, physics_dt_s).wind
     # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
     sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
@@ -624,7 +629,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     dt = preset.dt_s
     dt_ms = int(round(dt * 1000))
     # the inner loop steps lockstep vehicles by their sub-steps: each step's acceleration is their mean
-    sub_ms = int(round((cfg.physics_dt_s or LOCKSTEP_PHYSICS_DT_S) * 1000)) if cfg.inner_loop and cfg.lockstep else None
+    sub_ms = int(round(cfg.plant_dt_s * 1000)) if cfg.inner_loop and cfg.lockstep else None
     states = np.full((T + 1, n, 4), np.nan)
     acc = np.full((T, n, 2), np.nan)
     tracks = [read_vehicle_tlog(out / "vehicles" / f"vehicle{i}.tlog", i + 1) for i in range(n)]
