@@ -105,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hold-model", choices=("pd", "px4"), default=None, help="the failed vehicle's Hold model (sim --hold-model)")
     ap.add_argument("--gust", action="store_true")
     ap.add_argument("--acc-lag-s", type=float, default=None, help="the airframes' acceleration lag (sim --acc-lag-s)")
-    ap.add_argument("--inner-loop", action="store_true", help="the telemetry-rate inner loop (sim --inner-loop)")
+    ap.add_argument("--inner-loop", action=argparse.BooleanOptionalAction, default=None,
+                    help="the telemetry-rate inner loop (sim --inner-loop / --no-inner-loop; default: the preset's)")
     a = ap.parse_args(argv)
     from mfg_autopilot.presets import MODES
 
@@ -113,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
              + [x for t in (a.fail_at or [20.0]) for x in ("--fail-at", str(t))] if a.fail_vehicle else []) + \
         (["--hold-jerk", str(a.hold_jerk)] if a.hold_jerk is not None else []) + (["--gust"] if a.gust else []) + \
         (["--hold-model", a.hold_model] if a.hold_model is not None else []) + \
-        (["--acc-lag-s", str(a.acc_lag_s)] if a.acc_lag_s is not None else []) + (["--inner-loop"] if a.inner_loop else [])
+        (["--acc-lag-s", str(a.acc_lag_s)] if a.acc_lag_s is not None else []) + ([] if a.inner_loop is None else ["--inner-loop" if a.inner_loop else "--no-inner-loop"])
     rows = []
     for family in a.families.split(","):
         for n in (int(x) for x in a.n.split(",")):

@@ -97,11 +97,22 @@ def preset_by_name(name: str) -> Preset:
 
 def with_inner_loop(preset: Preset, on: bool = True) -> Preset:
     """``preset`` with its telemetry-rate inner loop switched on (or off): ``TrackingParams.inner_loop``
-    (guidance/inner_loop.py). ValueError for a preset without the default guidance's tracking (the paper's)."""
+    (guidance/inner_loop.py; on in the default guidance's presets). ValueError for switching it on in a preset without
+    the default guidance's tracking (the paper's); switching it off there is a no-op."""
     tracking = getattr(preset, "tracking", None)
     if tracking is None:
+        if not on:
+            return preset
         raise ValueError(f"preset {preset.name!r} has no inner loop (only the default guidance's presets do)")
     return replace(preset, tracking=replace(tracking, inner_loop=on))
+
+
+def inner_loop_on(preset: Preset, override: bool | None = None) -> bool:
+    """Whether ``preset`` flies the telemetry-rate inner loop: ``override`` if given (``with_inner_loop``'s checks),
+    else its ``TrackingParams.inner_loop`` (False for a preset without the default guidance's tracking)."""
+    if override is not None:
+        preset = with_inner_loop(preset, override)
+    return bool(getattr(getattr(preset, "tracking", None), "inner_loop", False))
 
 
 def make_controller(mode: str, preset: Preset, destination_site_m: np.ndarray) -> Controller:

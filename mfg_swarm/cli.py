@@ -49,9 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--acc-lag-s", type=float, default=0.0, metavar="TAU",
                      help="the airframes fly their acceleration command through a first-order lag of TAU s (PX4's "
                           "attitude loop: about 1 / MC_ROLL_P = 0.154 s); default 0: at once, as the paper's eq. 9")
-    sim.add_argument("--inner-loop", action="store_true",
+    sim.add_argument("--inner-loop", action=argparse.BooleanOptionalAction, default=None,
                      help="track each period's command at every physics sub-step (TrackingParams.inner_loop: against "
-                          "an airframe's lag, --acc-lag-s); default preset only")
+                          "an airframe's lag, --acc-lag-s, and gusts); default: the preset's (on in the default "
+                          "guidance's presets; the paper's has none)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     sim.add_argument("--fail-vehicle", type=int, action="append", default=None, metavar="K",
                      help="fault: vehicle K stops following its controller and holds where it is (PX4 Hold); "
@@ -104,9 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--acc-lag-s", type=float, default=0.0, metavar="TAU",
                      help="the mock vehicles fly their acceleration command through a first-order lag of TAU s "
                           "(mock-vehicle --acc-lag-s; PX4's attitude loop: about 0.154 s); default 0")
-    run.add_argument("--inner-loop", action="store_true",
+    run.add_argument("--inner-loop", action=argparse.BooleanOptionalAction, default=None,
                      help="every controller tracks its command at each LOCAL_POSITION_NED between steps "
-                          "(mfg-autopilot --inner-loop; against --acc-lag-s); lockstep steps the mocks by sub-steps")
+                          "(mfg-autopilot --inner-loop; against --acc-lag-s and gusts); lockstep steps the mocks by "
+                          "sub-steps; default: the preset's (on in the default guidance's presets)")
     run.add_argument("--time-limit-s", type=float, default=None, help="stop the swarm after this wall time")
     run.add_argument("--startup-timeout-s", type=float, default=None,
                      help="every controller must reach OFFBOARD within this (default: scales with N, the cores and "
@@ -229,7 +231,9 @@ def _cmd_sim(args) -> int:
     from .sim import GustParams, SimConfig, simulate
 
     preset = preset_by_name(args.preset)
-    cfg = SimConfig(scenario=_scenario(args), mode=args.mode, preset=with_inner_loop(preset) if args.inner_loop else preset,
+    if args.inner_loop is not None:
+        preset = with_inner_loop(preset, args.inner_loop)
+    cfg = SimConfig(scenario=_scenario(args), mode=args.mode, preset=preset,
                     seed=args.seed, steps=args.steps, range_m=_range_from(args), physics_dt_s=args.physics_dt_s,
                     fail_vehicle=_one_or_tuple(args.fail_vehicle), fail_at_s=_one_or_tuple(args.fail_at) or 0.0,
                     hold_jerk_m_s3=args.hold_jerk, gust=GustParams() if args.gust else None,
@@ -293,8 +297,8 @@ def _cmd_run(args) -> int:
                     progress=False if args.no_progress else None, mavlink_key_file=args.mavlink_key, swarm=args.swarm,
                     zenoh_router_config=args.zenoh_router_config, zenoh_client_config=args.zenoh_client_config,
                     controller_rt_priority=args.rt_priority, acc_lag_s=args.acc_lag_s, inner_loop=args.inner_loop)
-    if args.inner_loop:
-        with_inner_loop(preset_by_name(args.preset))    # a preset without it fails before any process starts
+    if args.inner_loop is not None:
+        with_inner_loop(preset_by_name(args.preset), args.inner_loop)   # a preset without it fails before any process starts
     try:
         PlantParams(acc_lag_s=args.acc_lag_s)          # the plant's own check, before any process starts
     except ValueError as exc:

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.presets import inner_loop_on, make_controller, preset_by_name
 from mfg_autopilot.safety.layers import counts_by_layer
 from mock_vehicle.proximity import DEFAULT_HOME_DEG
 
@@ -110,7 +110,8 @@ class RunConfig:
     physics_dt_s: float | None = None         # the mocks' plant sub-step; None: 0.1 s in lockstep (the simulator's, bit
                                               # for bit), REALTIME_PHYSICS_DT_S in real time
     acc_lag_s: float = 0.0                    # the mocks' acceleration response lag (mock-vehicle --acc-lag-s)
-    inner_loop: bool = False                  # every controller's telemetry-rate inner loop (mfg-autopilot --inner-loop)
+    inner_loop: bool | None = None            # every controller's telemetry-rate inner loop (mfg-autopilot
+                                              # --inner-loop); None: the preset's (on in the default guidance's)
     time_limit_s: float | None = None
     startup_timeout_s: float | None = None    # None: default_startup_timeout_s(N) (scales with N and the machine)
     progress: bool | None = None
@@ -129,6 +130,17 @@ class RunConfig:
     def plant_dt_s(self) -> float:
         """The mocks' plant sub-step: physics_dt_s, or by default the lockstep or real-time one."""
         return self.physics_dt_s or (LOCKSTEP_PHYSICS_DT_S if self.lockstep else REALTIME_PHYSICS_DT_S)
+
+    @property
+    def inner_loop_on(self) -> bool:
+        """Whether the controllers fly the inner loop: ``inner_loop``, or the preset's (presets.inner_loop_on)."""
+        return inner_loop_on(preset_by_name(self.preset_name), self.inner_loop)
+
+    @property
+    def lockstep_sub_step_ms(self) -> int | None:
+        """Lockstep with the inner loop: the mocks are stepped by their plant sub-step (ms), each control step's
+        acceleration being its sub-steps' mean (flightlog.lockstep_grid); else None."""
+        return int(round(self.plant_dt_s * 1000)) if self.inner_loop_on and self.lockstep else None
 
 
 def _free_port_block(n_udp: int, n_tcp: int, lo: int = 20000, hi: int = 32000, tries: int = 200,
@@ -448,6 +460,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     py = cfg.python
     startup_s = cfg.startup_timeout_s if cfg.startup_timeout_s is not None else default_startup_timeout_s(n)
     physics_dt_s = cfg.plant_dt_s
+    inner_on = cfg.inner_loop_on
     wind = plant_params_for(preset, physics_dt_s).wind
     # proximity sensor (docs/proximity.md): a world process when the preset's controller has one
     sensor_range_m = getattr(make_controller(cfg.mode, preset, sc.destination_m[:1]), "sensor_range_m", None)
@@ -486,7 +499,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--wind-diffusion", ",".join(repr(float(v)) for row in wind.wind_diffusion_m_s for v in row),
                     "--acc-limit-m-s2", repr(float(preset.learner.acc_max_m_s2)), "--physics-dt-s", repr(float(physics_dt_s)),
                     *([] if cfg.lockstep else ["--traffic-rate-hz", repr(REALTIME_TRAFFIC_RATE_HZ)]),
-                    "--dt-s", repr(float(physics_dt_s if cfg.inner_loop and cfg.lockstep else preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
+                    "--dt-s", repr(float(physics_dt_s if inner_on and cfg.lockstep else preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
             if cfg.acc_lag_s > 0:
@@ -531,8 +544,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     argv += ["--zenoh-connect", f"tcp/127.0.0.1:{z_ports[0]}"]
             if cfg.mavlink_key_file:
                 argv += ["--mavlink-key", str(cfg.mavlink_key_file)]
-            if cfg.inner_loop:
-                argv.append("--inner-loop")
+            if cfg.inner_loop is not None:
+                argv.append("--inner-loop" if cfg.inner_loop else "--no-inner-loop")
             if cfg.controller_rt_priority is not None:
                 argv += ["--rt-priority", str(int(cfg.controller_rt_priority))]
             argv += list(cfg.extra_controller_args)
@@ -603,7 +616,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     exit_codes = {c.name: c.p.returncode for c in controllers}
     traj, metrics = _collect(cfg, preset, n, out, wall_s)
     partial = reason != "completed" or any(code != 0 for code in exit_codes.values())
-    metrics.update({"path": "processes", "lockstep": cfg.lockstep, "partial": partial, "end_reason": reason,
+    metrics.update({"path": "processes", "lockstep": cfg.lockstep, "inner_loop": cfg.inner_loop_on,
+                    "lockstep_sub_step_ms": cfg.lockstep_sub_step_ms, "partial": partial, "end_reason": reason,
                     "controller_exit_codes": exit_codes, "killed": killed})
     write_npz_atomic(out / "trajectories.npz", traj.arrays())
     write_json_atomic(out / "metrics.json", metrics)
@@ -629,7 +643,7 @@ def _collect(cfg: RunConfig, preset, n: int, out: Path, wall_s: float) -> tuple[
     dt = preset.dt_s
     dt_ms = int(round(dt * 1000))
     # the inner loop steps lockstep vehicles by their sub-steps: each step's acceleration is their mean
-    sub_ms = int(round(cfg.plant_dt_s * 1000)) if cfg.inner_loop and cfg.lockstep else None
+    sub_ms = cfg.lockstep_sub_step_ms
     states = np.full((T + 1, n, 4), np.nan)
     acc = np.full((T, n, 2), np.nan)
     tracks = [read_vehicle_tlog(out / "vehicles" / f"vehicle{i}.tlog", i + 1) for i in range(n)]

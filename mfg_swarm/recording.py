@@ -241,7 +241,7 @@ def _tracks_from_tlogs(run_dir: Path, tlogs: list[Path], metrics: dict, datum: G
         states = np.full((steps + 1, n, 4), np.nan)
         acc = np.zeros((steps, n, 2))
         for i, tr in enumerate(swarm_tracks):
-            _, states[:, i], a = lockstep_grid(tr, dt_ms, steps)
+            _, states[:, i], a = lockstep_grid(tr, dt_ms, steps, metrics.get("lockstep_sub_step_ms"))
             acc[:, i] = np.nan_to_num(a)
     else:
         t0_unix = float(max(tr.pos_unix_s[0] for tr in swarm_tracks))

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from mfg_autopilot.guidance.params import DefaultPreset, TrackingParams
 from mfg_autopilot.guidance.planner import MeanFieldPlan, slots_from_sites
 from mfg_autopilot.interface import Neighbours, Observation
-from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.presets import make_controller, preset_by_name, with_inner_loop
 from mfg_autopilot.safety.backstop import apply_backstop, backstop_acc, escape_acc
 from mfg_autopilot.safety.params import BackstopParams
 from mfg_swarm.scenarios import make_scenario
@@ -18,10 +18,13 @@ from mfg_swarm.sim import GustParams, SimConfig, as_f32, plant_params_for, simul
 from mock_vehicle.plant import SwarmPlant
 
 DEFAULT = preset_by_name("default")
+# the held flight (TrackingParams.inner_loop off; the default since the twenty-eighth session): where a test stages a
+# situation the held flight made and measures a rule against its absence there
+HELD = with_inner_loop(DEFAULT, False)
 
 
-def _fly(scenario, n, mode, seed=0, **kw):
-    cfg = SimConfig(scenario=make_scenario(scenario, n), mode=mode, preset=DEFAULT, seed=seed, steps=200,
+def _fly(scenario, n, mode, seed=0, preset=DEFAULT, **kw):
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode=mode, preset=preset, seed=seed, steps=200,
                     range_m=100.0 if mode == "hjb" else None, **kw)
     return simulate(cfg, progress=False)[1]
 
@@ -262,11 +265,12 @@ def test_default_hjb_crossing_seed_2_head_on_pair_is_kept_apart_by_the_heard_gua
     # UAVs 8 and 44 meet head-on at t = 18 s, inside the repulsion radius and heard every step; the sum of the
     # pushes from the interleaving rows outweighed their own pair's push and they passed 0.046 m apart
     # (1 collided pair) before the guard on heard vehicles (hjb_repulsion.heard_guard_fraction)
-    h = _fly("crossing", 50, "hjb", 2)
-    assert h["collision_pairs"] == 0, h["collided_pairs_list"]
-    assert h["arrived_fraction"] == 1.0
-    assert h["min_pair_distance_m"] > 0.1
-    off = dataclasses.replace(DEFAULT, hjb_repulsion=dataclasses.replace(DEFAULT.hjb_repulsion, heard_guard_fraction=0.0))
+    # (held, as measured: with the inner loop the pair passes 0.1 m apart without the guard too; both flights are flown)
+    for h in (_fly("crossing", 50, "hjb", 2), _fly("crossing", 50, "hjb", 2, preset=HELD)):
+        assert h["collision_pairs"] == 0, h["collided_pairs_list"]
+        assert h["arrived_fraction"] == 1.0
+        assert h["min_pair_distance_m"] > 0.1
+    off = dataclasses.replace(HELD, hjb_repulsion=dataclasses.replace(DEFAULT.hjb_repulsion, heard_guard_fraction=0.0))
     cfg = SimConfig(scenario=make_scenario("crossing", 50), mode="hjb", preset=off, seed=2, steps=200, range_m=100.0)
     m_off = simulate(cfg, progress=False)[1]
     assert m_off["collision_pairs"] >= 1          # the case still exercises the mechanism without the guard
@@ -301,11 +305,12 @@ def test_dense_formation_in_a_gust_is_held_apart_by_the_relative_error_priority(
     # 0.5 m), each UAV blown by its own 0.5-1.5 m/s^2 (+-30 deg) gust for 5 s. Not a safety promise at this spacing:
     # single pairs close below 0.1 m (docs/default_controller.md "Gusts"); what the relative-error priority does is
     # measured against each UAV fighting the gust alone to its own particle (seed 2: 25 collided pairs without it, 1
-    # with it, smallest separation 0 m against 0.097 m)
-    tight = DefaultPreset(cruise_spacing_m=0.0)
+    # with it, smallest separation 0 m against 0.097 m). Held (no inner loop), as measured: with the inner loop each UAV
+    # fights the gust inside the period and the grid keeps 3 pairs with the priority, 2 without
+    tight = DefaultPreset(cruise_spacing_m=0.0, tracking=TrackingParams(inner_loop=False))
     on = simulate(SimConfig(scenario=make_scenario("dense", 144), mode="mfg", preset=tight, seed=2, steps=200,
                             gust=GustParams()), progress=False)[1]
-    alone = DefaultPreset(cruise_spacing_m=0.0, tracking=TrackingParams(relative_priority=False))
+    alone = DefaultPreset(cruise_spacing_m=0.0, tracking=TrackingParams(relative_priority=False, inner_loop=False))
     off = simulate(SimConfig(scenario=make_scenario("dense", 144), mode="mfg", preset=alone, seed=2, steps=200,
                              gust=GustParams()), progress=False)[1]
     assert on["arrived_fraction"] == 1.0 and off["arrived_fraction"] == 1.0
@@ -473,7 +478,8 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     def fly(preset, hold="pd"):
         return simulate(SimConfig(scenario=make_scenario("circle", 1000), mode="mfg", preset=preset, seed=6, steps=400,
                                   fail_vehicle=10, fail_at_s=20.0, hold_model=hold), progress=False)[1]
-    for m in (fly(DEFAULT), fly(DEFAULT, "px4")):
+    # (held, as measured: the inner loop, the default, flies the counterfactual below without a pair; both are flown)
+    for m in (fly(DEFAULT), fly(HELD), fly(DEFAULT, "px4")):
         assert m["collision_pairs"] == 0, m["collided_pairs_list"]
         assert m["arrived_fraction_others"] == 1.0
     # the case exercises the rule: without it, that pair (with the rules that came after it off as well - the yield,
@@ -484,7 +490,7 @@ def test_failed_vehicle_on_a_path_into_a_slot_is_avoided_to_the_end_of_the_turn(
     # crowded rows: with it on and every rule above off, the UAVs settling into the slots around the hovering vehicle
     # collide among themselves instead; and with every off-plan vehicle predicted braking to a stop, as before the
     # twenty-fourth session's measured braking hypothesis)
-    off = fly(dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
+    off = fly(dataclasses.replace(HELD, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0,
                                                                         escape_brake_hypothesis="threat",
                                                                         escape_yield=False, gap_push=False,
                                                                         push_flow_reach=False,

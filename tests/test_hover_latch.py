@@ -15,6 +15,7 @@ import pytest
 
 from mfg_autopilot.guidance.controller import DefaultMFGController
 from mfg_autopilot.guidance.params import DEFAULT
+from mfg_autopilot.presets import with_inner_loop
 from mfg_autopilot.interface import Neighbours
 from mfg_autopilot.safety.params import BackstopParams
 from mfg_swarm.scenarios import make_scenario
@@ -76,13 +77,16 @@ def test_a_hold_drifting_back_after_the_gust_is_passed():
     # swap4 --gust N = 1,000 seed 78, vehicle 10 failing into PX4's Hold (the default) at 20.15 s: when the gust ended
     # it flew back towards its Hold point at up to 1.41 m/s, accelerating at 2 m/s^2 across UAV 17's lane; past 1 m/s it
     # no longer counted as hovering, 17's crowded row stopped escaping it and met it at 0.093 m. With the latch: 0.217 m
-    def fly(latch_s):
+    # (held, as measured: with the inner loop, the default, the flight without the latch has no pair; the default is
+    # flown too)
+    def fly(latch_s, inner=False):
         bp = dataclasses.replace(DEFAULT.backstop, hover_latch_s=latch_s)
         return simulate(SimConfig(scenario=make_scenario("swap4", 1000, 78), mode="mfg",
-                                  preset=dataclasses.replace(DEFAULT, backstop=bp), seed=78, steps=56, gust=GustParams(),
+                                  preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp), inner), seed=78,
+                                  steps=56, gust=GustParams(),
                                   fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
-    m = fly(DEFAULT.backstop.hover_latch_s)
-    assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.2, (m["collided_pairs_list"], m["min_separation_m"])
+    for m in (fly(DEFAULT.backstop.hover_latch_s), fly(DEFAULT.backstop.hover_latch_s, inner=True)):
+        assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.2, (m["collided_pairs_list"], m["min_separation_m"])
     assert [10, 17] in fly(0.0)["collided_pairs_list"]
 
 
@@ -116,11 +120,12 @@ def test_bench_hold_drift_reads_the_drift_after_the_first_stop(tmp_path):
 def test_a_healthy_uav_recovering_its_plan_after_the_gust_is_not_latched():
     # crossing --gust N = 137 seed 125 (no failure): the gust pins a group at its departure; its UAVs hover behind their
     # particles, then accelerate back into the stream. Latched as hovering while they did, they kept the hover rules
-    # (0.433 -> 0.198 m); gated by their heading to their own particle they do not (0.352 m)
+    # (0.433 -> 0.198 m); gated by their heading to their own particle they do not (0.352 m). Held (no inner loop), as
+    # measured: with the inner loop the flight keeps 0.48 m with the gate off too
     def fly(towards):
         bp = dataclasses.replace(DEFAULT.backstop, hover_latch_max_towards_plan=towards)
         return simulate(SimConfig(scenario=make_scenario("crossing", 137, 125), mode="mfg",
-                                  preset=dataclasses.replace(DEFAULT, backstop=bp), seed=125, steps=160,
+                                  preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp), False), seed=125, steps=160,
                                   gust=GustParams()), progress=False)[1]
     assert fly(DEFAULT.backstop.hover_latch_max_towards_plan)["min_separation_m"] >= 0.3
     assert fly(1.0)["min_separation_m"] < 0.25          # the gate off: every latched vehicle

@@ -11,7 +11,7 @@ import mfg_swarm.sim as sim
 from mfg_autopilot.interface import HeardSummary, Neighbours
 from mfg_autopilot.paper.features import make_sigma_F
 from mfg_autopilot.paper.meanfield import KDE_TRUNCATION_TOL, fit_initial_fpk_weights, kde_at
-from mfg_autopilot.presets import make_controller, preset_by_name
+from mfg_autopilot.presets import make_controller, preset_by_name, with_inner_loop
 from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import SimConfig, heard_summary_by_tree, simulate
 
@@ -247,12 +247,14 @@ def test_mfg_sensed_cutoff_widens_only_the_rows_within_the_sensor_range_of_a_veh
     assert set(np.flatnonzero(extra >= bp.sensor_range_m)) == {5, 6} == set(np.flatnonzero(wide_rows))
 
 
-@pytest.mark.parametrize("scenario,n,seed,extra", [("swap4", 144, 3, {"gust": sim.GustParams()}),
-                                                   ("crossing", 100, 7, {"fail_vehicle": 10, "fail_at_s": 20.0}),
-                                                   ("paper", 100, 4, {"fail_vehicle": 10, "fail_at_s": 20.0}),
-                                                   ("dense", 144, 2, {"gust": sim.GustParams()}),
-                                                   ("circle", 100, 4, {"fail_vehicle": 3, "fail_at_s": 12.0})])
-def test_the_cutoffs_braking_superset_holds_every_vehicle_a_row_flags(monkeypatch, scenario, n, seed, extra):
+# the gust flights are held (no inner loop, the default since the twenty-eighth session): with the inner loop no row
+# flags a vehicle braking in them, and the test would not be exercised
+@pytest.mark.parametrize("scenario,n,seed,extra,inner", [("swap4", 144, 3, {"gust": sim.GustParams()}, False),
+                                                         ("crossing", 100, 7, {"fail_vehicle": 10, "fail_at_s": 20.0}, True),
+                                                         ("paper", 100, 4, {"fail_vehicle": 10, "fail_at_s": 20.0}, True),
+                                                         ("dense", 144, 2, {"gust": sim.GustParams()}, False),
+                                                         ("circle", 100, 4, {"fail_vehicle": 3, "fail_at_s": 12.0}, True)])
+def test_the_cutoffs_braking_superset_holds_every_vehicle_a_row_flags(monkeypatch, scenario, n, seed, extra, inner):
     """sensed_cutoff_m's _braking_superset evaluates the braking test on the states as sensed, with the w_H of every row
     within the sensor range and a bound on act()'s model update in between: every vehicle that a row's braking test
     flags at a step (_unplanned_by_braking, in the flight itself) is in it. The old test (true states, the
@@ -282,7 +284,8 @@ def test_the_cutoffs_braking_superset_holds_every_vehicle_a_row_flags(monkeypatc
 
     monkeypatch.setattr(pd.DefaultMFGController, "_braking_superset", sup)
     monkeypatch.setattr(pd.DefaultMFGController, "_unplanned_by_braking", flag)
-    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="mfg", preset=DEFAULT, seed=seed, steps=120, **extra)
+    cfg = SimConfig(scenario=make_scenario(scenario, n), mode="mfg", preset=with_inner_loop(DEFAULT, inner), seed=seed,
+                    steps=120, **extra)
     simulate(cfg, progress=False)
     n_flagged = sum(len(v) for v in flagged_at.values())
     assert n_flagged > 0                                   # the test is exercised: rows did flag by braking

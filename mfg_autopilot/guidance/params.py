@@ -92,12 +92,13 @@ class TrackingParams:
     disturbance_feedforward: bool = False
     disturbance_smoothing: float = 0.5      # lam: d_hat = lam d_hat + (1 - lam) residual
     disturbance_deadband_m_s2: float = 0.3  # ~3.7 x the smoothed residual's std per axis under V_o alone (0.08 m/s^2)
-    # the telemetry-rate inner loop (guidance/inner_loop.py; not from the paper; off): between control steps the vehicle
+    # the telemetry-rate inner loop (guidance/inner_loop.py; not from the paper; on): between control steps the vehicle
     # tracks the trajectory the period's command promised, a = sat(a_k + k_p (r_ref - r) + k_d (v_ref - v)), at every
     # physics sub-step (simulator), LOCAL_POSITION_NED (autopilot, real time) or sub-step of a lockstep vehicle stepped by
     # its physics sub-step (docs/lockstep.md). For an airframe with an acceleration
-    # lag (PlantParams.acc_lag_s; PX4 ~0.154 s), against which eq. 8's held gains ring (docs/default_controller.md)
-    inner_loop: bool = False
+    # lag (PlantParams.acc_lag_s; PX4 ~0.154 s), against which eq. 8's held gains ring, and for a gust inside the
+    # period (docs/default_controller.md). Where a vehicle is stepped whole periods it is idle: the held flight
+    inner_loop: bool = True
     inner_kp_per_s2: float = 4.0
     inner_kd_per_s: float = 4.0
 

@@ -90,7 +90,7 @@ class Autopilot:
         self.cfg, self.link, self.exchange, self.clog, self.stop = cfg, link, exchange, clog, stop
         self.gc_clock = gc_clock
         preset = preset_by_name(cfg.preset)
-        self.preset = with_inner_loop(preset) if cfg.inner_loop else preset
+        self.preset = preset if cfg.inner_loop is None else with_inner_loop(preset, cfg.inner_loop)
         # TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next step (real
         # time: _inner_track; lockstep, a vehicle stepped by sub-steps: _lockstep_inner)
         self.inner = InnerLoop.for_preset(self.preset)

@@ -43,9 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "vehicles); default: every vehicle to the origin")
     p.add_argument("--lockstep", action="store_true", help="one control step per simulated dt (docs/lockstep.md)")
     p.add_argument("--steps", type=int, default=200, help="mission time limit in control steps (default: 200)")
-    p.add_argument("--inner-loop", action="store_true",
+    p.add_argument("--inner-loop", action=argparse.BooleanOptionalAction, default=None,
                    help="track each step's command at every LOCAL_POSITION_NED until the next step (against the "
-                        "airframe's acceleration lag; default preset only); lockstep: start the vehicle with "
+                        "airframe's acceleration lag and gusts; default: the preset's, on in the default guidance's "
+                        "presets, --inner-loop refused for the paper's); lockstep: start the vehicle with "
                         "--dt-s = its --physics-dt-s so that it answers each sub-step")
     p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")

@@ -61,9 +61,10 @@ class AutopilotConfig:
     origin_timeout_s: float = 60.0            # wait this long for the vehicle's EKF origin (GPS_GLOBAL_ORIGIN)
     takeoff_timeout_s: float = 120.0          # ... and for the climb to the group's altitude
     land_timeout_s: float = 120.0             # ... and for touchdown and disarm after the mission
-    inner_loop: bool = False                  # track each step's command at every LOCAL_POSITION_NED between steps
+    inner_loop: bool | None = None            # track each step's command at every LOCAL_POSITION_NED between steps
                                               # (TrackingParams.inner_loop, guidance/inner_loop.py); lockstep: a
-                                              # vehicle stepped by its physics sub-step
+                                              # vehicle stepped by its physics sub-step. None: the preset's (on in
+                                              # the default guidance's presets)
 
     def __post_init__(self) -> None:
         if self.n < 1:
