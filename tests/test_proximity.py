@@ -467,3 +467,22 @@ def test_runtime_fills_observation_sensed_from_the_steps_traffic_set():
     # a controller without a sensor range (paper preset) never asks
     link = _StubLink({})
     assert _autopilot(link, preset="paper")._observe(0, np.zeros(4), 0.0).sensed is None and link.asked == []
+
+
+def test_the_mission_clock_is_agreed_from_the_t0_exchange():
+    # every vehicle computes the same real-time mission start from the same exchanged states: the latest publication
+    # plus the take-off margin, whatever its own clock says now; zeros (lockstep, an older sender) say nothing
+    from mfg_autopilot.runtime.timing import START_MARGIN_S, agreed_start_unix_s
+
+    published = [1000.0, 1000.07, 0.0, 1000.128]
+    starts = {agreed_start_unix_s(published, now)[0] for now in (1000.2, 1000.9, 1001.5)}
+    assert starts == {1000.128 + START_MARGIN_S}
+    assert agreed_start_unix_s(published, 1000.2)[1] is None
+    # nobody gave a time: its own clock, said so
+    start, note = agreed_start_unix_s([0.0, 0.0], 55.0)
+    assert start == 55.0 and "own mission clock" in note
+    # a clock far ahead is not waited for
+    start, note = agreed_start_unix_s([1000.0, 5000.0], 1001.0)
+    assert start == 1001.0 and "clock is off" in note
+    # a start already past (a vehicle slow to reach OFFBOARD) stays the agreed one: that vehicle catches up
+    assert agreed_start_unix_s([1000.0], 1010.0)[0] == 1000.0 + START_MARGIN_S

@@ -64,7 +64,7 @@ from mfg_autopilot.presets import make_controller, preset_by_name, with_inner_lo
 from mfg_autopilot.runtime.config import AutopilotConfig, AutopilotError
 from mfg_autopilot.runtime.controller_log import ControllerLog
 from mfg_autopilot.runtime.exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange
-from mfg_autopilot.runtime.timing import GcClock, PhaseClock, set_realtime_priority
+from mfg_autopilot.runtime.timing import GcClock, PhaseClock, agreed_start_unix_s, set_realtime_priority
 from mfg_autopilot.runtime.zenoh_config import ZenohSettings
 
 __all__ = ["Autopilot", "AutopilotConfig", "AutopilotError", "ControllerLog", "run_autopilot", "set_realtime_priority",
@@ -75,6 +75,9 @@ log = logging.getLogger("mfg_autopilot")
 LOCKSTEP_PRESTREAM_TIME_BOOT_MS = 0xFFFFFFFF
 """Stamp of the setpoints streamed during the OFFBOARD handshake in lockstep: never a
 simulated time, so they satisfy PX4's stream check without advancing the world."""
+# real time: OFFBOARD is entered this long before the agreed mission start (the mode's acknowledgement is ~ms on a
+# loopback link; the held zero acceleration flown until the first step lets the vehicle drift at its velocity)
+OFFBOARD_LEAD_S = 0.05
 
 
 def _state_of(p: LocalPositionNed) -> np.ndarray:
@@ -172,10 +175,19 @@ class Autopilot:
 
     # ---------------------------------------------------------------- phases
     def join_swarm(self, s0: np.ndarray) -> int:
-        """MFG: the t = 0 exchange (N - 1 states). HJB_d: wait until all N are present."""
+        """MFG: the t = 0 exchange (N - 1 states); in real time it also agrees the mission clock's start
+        (timing.agreed_start_unix_s: each state carries the Unix time it was published). HJB_d: wait until all N are
+        present."""
         cfg = self.cfg
         if getattr(self.ctrl, "uses_t0_exchange", not self.gossips):
-            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s, stop=self.stop)
+            published = 0.0 if cfg.lockstep else time.time()
+            got = self.exchange.initial_exchange(s0, timeout_s=cfg.exchange_timeout_s, time_s=published, stop=self.stop)
+            if not cfg.lockstep:
+                self.mission_start_unix_s, note = agreed_start_unix_s((m.time_s for m in got.values()), time.time())
+                self.clog.event("mission_clock", start_unix_s=self.mission_start_unix_s,
+                                in_s=self.mission_start_unix_s - time.time(), **({"note": note} if note else {}))
+                if note:
+                    log.warning(note)
             ids = np.array(sorted(got), dtype=np.int64)
             states = np.array([got[i].state for i in ids], dtype=float)
             own = int(np.flatnonzero(ids == cfg.instance)[0])
@@ -194,8 +206,10 @@ class Autopilot:
         self.clog.event("swarm_present", n=cfg.n)
         return 0
 
-    def take_off(self) -> None:
-        """Stream setpoints, arm, enter OFFBOARD (typed errors from the bridge say what failed)."""
+    def take_off(self, offboard_at_unix_s: float | None = None) -> None:
+        """Stream setpoints, arm, enter OFFBOARD (typed errors from the bridge say what failed). offboard_at_unix_s:
+        the agreed mission start (real time): OFFBOARD is entered just before it, so that the vehicle holds where it
+        was exchanged until the swarm starts (in OFFBOARD with the held zero acceleration it would drift)."""
         cfg = self.cfg
         stamp = LOCKSTEP_PRESTREAM_TIME_BOOT_MS if cfg.lockstep else None
         self.link.set_held_setpoint((0.0, 0.0, 0.0), stamp, z_m=self.z_sp_local_m)
@@ -207,6 +221,10 @@ class Autopilot:
         if hb is None or not hb.armed:                  # a field mission armed before its takeoff
             self.link.arm(cfg.command_timeout_s)
             self.clog.event("armed")
+        if offboard_at_unix_s is not None:
+            self.stop.wait(max(0.0, offboard_at_unix_s - OFFBOARD_LEAD_S - time.time()))
+            if self.stop.is_set():
+                raise _Stopped()
         self.link.start_offboard(cfg.command_timeout_s)
         self.clog.event("offboard")
         if cfg.lockstep:
@@ -679,7 +697,7 @@ def run_autopilot(cfg: AutopilotConfig, stop: threading.Event | None = None) -> 
             if stop.is_set():
                 reason = "signal"
             else:
-                ap.take_off()
+                ap.take_off(None if cfg.lockstep else ap.mission_start_unix_s)
                 reason = ap.run_lockstep(p0) if cfg.lockstep else ap.run_realtime()
             clog.write({"type": "end", "reason": reason, "wall_s": time.time(),
                         "states_received_total": int(exchange.states_received_total),

@@ -11,7 +11,7 @@ import time
 from mavlink_bridge import VehicleLink
 from mfg_autopilot.runtime.config import check_rt_priority
 
-__all__ = ["GcClock", "PhaseClock", "set_realtime_priority"]
+__all__ = ["GcClock", "PhaseClock", "START_MARGIN_S", "START_MAX_WAIT_S", "agreed_start_unix_s", "set_realtime_priority"]
 
 log = logging.getLogger("mfg_autopilot")
 
@@ -118,3 +118,31 @@ def set_realtime_priority(priority: int, clog=None) -> bool:
     if clog is not None:
         clog.event("rt_priority", priority=int(priority), applied=True, threads=done)
     return True
+
+
+# the real-time mission clock's start (agreed_start_unix_s): after the last vehicle published its t = 0 state, every
+# vehicle still takes off into OFFBOARD (~1.3 s: a second of setpoint stream, arming, the mode's acknowledgement)
+START_MARGIN_S = 2.5
+START_MAX_WAIT_S = 30.0     # a start further ahead than this is a wrong clock, not a slow swarm
+
+
+def agreed_start_unix_s(published_unix_s, now_unix_s: float, margin_s: float = START_MARGIN_S,
+                        max_wait_s: float = START_MAX_WAIT_S) -> tuple[float, str | None]:
+    """The real-time mission start every vehicle computes alike from the t = 0 exchange: the latest Unix time at
+    which a vehicle published its t = 0 state (``StateMsg.time_s`` at step 0; 0 or less: a sender that says nothing,
+    lockstep or an older one) plus ``margin_s``. Step k of every controller then falls at start + k dt on the same
+    clock, so each vehicle's plan particle is where the others expect it: with a start of its own, a controller that
+    starts 0.1 s before its neighbours sees them 0.1 s behind their particles (0.3-0.4 m in cruise) and its formation
+    feedback brakes it (docs/proximity.md, "Real time needs fresh traffic"). Across machines the wall clocks must agree
+    (NTP/PTP), as for the traffic's timestamps.
+
+    Returns (start, note): ``now_unix_s`` and a note saying why when no sender gave a time, or when the agreed start
+    lies more than ``max_wait_s`` ahead of now (a clock that is off: the vehicle starts now on its own clock)."""
+    stamps = [float(t) for t in published_unix_s if t is not None and float(t) > 0.0 and float(t) == float(t)]
+    if not stamps:
+        return float(now_unix_s), "no vehicle published its t = 0 time: this controller starts its own mission clock"
+    start = max(stamps) + float(margin_s)
+    if start - now_unix_s > max_wait_s:
+        return float(now_unix_s), (f"the agreed start lies {start - now_unix_s:.1f} s ahead (a vehicle's clock is off?): "
+                                   f"this controller starts its own mission clock")
+    return start, None

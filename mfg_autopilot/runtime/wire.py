@@ -20,7 +20,7 @@ offset size type     field
 3      1    u8       flags = 0 (reserved)
 4      4    u32      vehicle_id (0-based instance index)
 8      8    i64      step (control step, >= 0; 0 = the t = 0 exchange)
-16     8    f64      time_s (simulated time of the state, s)
+16     8    f64      time_s (simulated time of the state, s; step 0 in real time: the Unix time it was published)
 24     32   4 x f64  state [x_m, y_m, vx_m_s, vy_m_s] in the swarm frame (N, E; docs/mission.md)
 ====== ==== ======== =============================================================
 """
