@@ -133,12 +133,12 @@ def agreed_start_unix_s(published_unix_s, now_unix_s: float, margin_s: float = S
     lockstep or an older one) plus ``margin_s``. Step k of every controller then falls at start + k dt on the same
     clock, so each vehicle's plan particle is where the others expect it: with a start of its own, a controller that
     starts 0.1 s before its neighbours sees them 0.1 s behind their particles (0.3-0.4 m in cruise) and its formation
-    feedback brakes it (docs/proximity.md, "Real time needs fresh traffic"). Across machines the wall clocks must agree
+    feedback brakes it (docs/proximity.md, "One mission clock for the swarm"). Across machines the wall clocks must agree
     (NTP/PTP), as for the traffic's timestamps.
 
     Returns (start, note): ``now_unix_s`` and a note saying why when no sender gave a time, or when the agreed start
     lies more than ``max_wait_s`` ahead of now (a clock that is off: the vehicle starts now on its own clock)."""
-    stamps = [float(t) for t in published_unix_s if t is not None and float(t) > 0.0 and float(t) == float(t)]
+    stamps = [float(t) for t in published_unix_s if t > 0.0]        # StateMsg refuses a non-finite time
     if not stamps:
         return float(now_unix_s), "no vehicle published its t = 0 time: this controller starts its own mission clock"
     start = max(stamps) + float(margin_s)
