@@ -107,6 +107,16 @@ def with_inner_loop(preset: Preset, on: bool = True) -> Preset:
     return replace(preset, tracking=replace(tracking, inner_loop=on))
 
 
+def with_acc_lag(preset: Preset, acc_lag_s: float) -> Preset:
+    """``preset`` whose own-vehicle model assumes the airframe's acceleration lag ``acc_lag_s`` (TrackingParams.acc_lag_s:
+    the escape's prediction of its own swerve, safety.backstop.OwnModel). A preset without the default guidance's
+    tracking (the paper's) has no such model: returned as it is."""
+    tracking = getattr(preset, "tracking", None)
+    if tracking is None or tracking.acc_lag_s == float(acc_lag_s):
+        return preset
+    return replace(preset, tracking=replace(tracking, acc_lag_s=float(acc_lag_s)))
+
+
 def inner_loop_on(preset: Preset, override: bool | None = None) -> bool:
     """Whether ``preset`` flies the telemetry-rate inner loop: ``override`` if given (``with_inner_loop``'s checks),
     else its ``TrackingParams.inner_loop`` (False for a preset without the default guidance's tracking)."""

@@ -244,6 +244,18 @@ class _DefaultBase:
         HJB_d: none, it has no plan to deflect)."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
+    def _own_airframe(self, step: int) -> dict:
+        """escape_acc's own-airframe arguments: its model of the own airframe (own_model: TrackingParams.acc_lag_s and
+        the inner loop's gains) and the acceleration each row flies now (own_acc_m_s2: its last command, sent one step
+        ago; None if there was none). {} without a lag: the closed-form prediction."""
+        tp = getattr(self.preset, "tracking", None)
+        if tp is None or not tp.acc_lag_s > 0.0:
+            return {}
+        kp, kd = (tp.inner_kp_per_s2, tp.inner_kd_per_s) if tp.inner_loop else (0.0, 0.0)
+        model = backstop.OwnModel(float(tp.acc_lag_s), float(kp), float(kd), float(self.preset.dt_s))
+        prev = getattr(self, "_own_a_prev", None)
+        return {"own_model": model, "own_acc_m_s2": prev[1] if prev is not None and prev[0] == step - 1 else None}
+
     def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray) -> np.ndarray | None:
         """(n, 2) the side each row passes a hovering vehicle off the plan on (MFG; HJB_d: None, nothing is off it)."""
         return None
@@ -385,8 +397,11 @@ class _DefaultBase:
                 # which threats may also be braking to a stop (BackstopParams.escape_brake_hypothesis; None: every one)
                 prev_v = self._entry_prev_v(sn, obs.step, seen) if seen is not None else None
                 bh = self._may_brake(sn, prev_v, hover, self._own_dist) if prev_v is not None else None
+                # the own airframe's lag, when it has one (safety.backstop.OwnModel)
+                airframe = self._own_airframe(obs.step)
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, brake_hyp=bh)
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, brake_hyp=bh,
+                                        **airframe)
             if np.any(push) and bp.crowd_cbf:
                 # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
                 # summed push left UAVs that chased their particles through a blown crowd to cross each other

@@ -60,7 +60,7 @@ from mavlink_bridge.adsb import adsb_states
 from mfg_autopilot.interface import Neighbours, Observation
 from mfg_autopilot.mission import GeodeticPoint, VehicleFrame
 from mfg_autopilot.guidance.inner_loop import InnerLoop
-from mfg_autopilot.presets import make_controller, preset_by_name, with_inner_loop
+from mfg_autopilot.presets import make_controller, preset_by_name, with_acc_lag, with_inner_loop
 from mfg_autopilot.runtime.config import AutopilotConfig, AutopilotError
 from mfg_autopilot.runtime.controller_log import ControllerLog
 from mfg_autopilot.runtime.exchange import ExchangeError, ExchangeStopped, ExchangeTimeout, SwarmExchange
@@ -93,7 +93,9 @@ class Autopilot:
         self.cfg, self.link, self.exchange, self.clog, self.stop = cfg, link, exchange, clog, stop
         self.gc_clock = gc_clock
         preset = preset_by_name(cfg.preset)
-        self.preset = preset if cfg.inner_loop is None else with_inner_loop(preset, cfg.inner_loop)
+        preset = preset if cfg.inner_loop is None else with_inner_loop(preset, cfg.inner_loop)
+        # the airframe the escape's own-vehicle model assumes (TrackingParams.acc_lag_s; safety.backstop.OwnModel)
+        self.preset = preset if cfg.acc_lag_s is None else with_acc_lag(preset, cfg.acc_lag_s)
         # TrackingParams.inner_loop: the step's command tracked at every LOCAL_POSITION_NED until the next step (real
         # time: _inner_track; lockstep, a vehicle stepped by sub-steps: _lockstep_inner)
         self.inner = InnerLoop.for_preset(self.preset)

@@ -48,6 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "airframe's acceleration lag and gusts; default: the preset's, on in the default guidance's "
                         "presets, --inner-loop refused for the paper's); lockstep: start the vehicle with "
                         "--dt-s = its --physics-dt-s so that it answers each sub-step")
+    p.add_argument("--acc-lag-s", type=float, default=None, metavar="TAU",
+                   help="the airframe's acceleration lag the controller's own-vehicle model assumes (the escape's "
+                        "prediction of its own swerve; PX4 multicopters ~0.154 s, the mock's --acc-lag-s; default: the "
+                        "preset's, TrackingParams.acc_lag_s)")
     p.add_argument("--hold-on-arrival", choices=("on", "off"), default=None,
                    help="command HOLD once within 1 m of the destination for 5 s (default: on in real time, off in lockstep)")
     p.add_argument("--log", default=None, help="controller log, JSON Lines (docs/controller_log.md)")
@@ -100,7 +104,8 @@ def config_from_args(args: argparse.Namespace) -> AutopilotConfig:
         vehicle_timeout_s=args.vehicle_timeout_s, exchange_timeout_s=args.exchange_timeout_s,
         gossip_timeout_s=args.gossip_timeout_s, step_timeout_s=args.step_timeout_s, state_dir=args.state_dir,
         vehicle_lost_s=args.vehicle_lost_s, mavlink_key_file=args.mavlink_key, rt_priority=args.rt_priority,
-        log_fpk_weights_every=args.log_fpk_weights_every, mission=mission, inner_loop=args.inner_loop)
+        log_fpk_weights_every=args.log_fpk_weights_every, mission=mission, inner_loop=args.inner_loop,
+        acc_lag_s=args.acc_lag_s)
 
 
 def main(argv: list[str] | None = None) -> int:

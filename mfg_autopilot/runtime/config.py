@@ -65,6 +65,8 @@ class AutopilotConfig:
                                               # (TrackingParams.inner_loop, guidance/inner_loop.py); lockstep: a
                                               # vehicle stepped by its physics sub-step. None: the preset's (on in
                                               # the default guidance's presets)
+    acc_lag_s: float | None = None            # the airframe's acceleration lag the own-vehicle model assumes
+                                              # (TrackingParams.acc_lag_s; the escape's prediction). None: the preset's
 
     def __post_init__(self) -> None:
         if self.n < 1:
@@ -79,6 +81,8 @@ class AutopilotConfig:
             raise ValueError(f"--steps must be >= 1, got {self.steps}")
         if self.rt_priority is not None:
             check_rt_priority(self.rt_priority)
+        if self.acc_lag_s is not None and not (np.isfinite(self.acc_lag_s) and 0.0 <= self.acc_lag_s <= 2.0):
+            raise ValueError(f"--acc-lag-s must be in [0, 2] s (0: none), got {self.acc_lag_s}")
         if self.log_fpk_weights_every < 0:
             raise ValueError(f"--log-fpk-weights-every must be >= 0, got {self.log_fpk_weights_every}")
         if self.mission is not None:

@@ -41,7 +41,7 @@ from mfg_autopilot.safety.layers import Layer, counts_by_layer, layer_names
 from mfg_autopilot.safety.params import BackstopParams
 
 __all__ = ["Layer", "layer_names", "counts_by_layer", "cannot_brake_short", "backstop_acc", "apply_backstop", "escape_acc",
-           "cbf_acc", "warm_up"]
+           "OwnModel", "NO_LAG", "own_response", "cbf_acc", "warm_up"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams,
@@ -84,13 +84,77 @@ def apply_backstop(a_nom: np.ndarray, delta_a: np.ndarray, a_max_m_s2: float) ->
                                               float(a_max_m_s2), float(a_max_m_s2 ** 2))
 
 
+class OwnModel(NamedTuple):
+    """How the own airframe flies a command, for the escape's prediction of the own vehicle (issue 18; not from the
+    paper). ``acc_lag_s`` tau: the first-order lag of the acceleration it flies behind the one commanded (PX4's
+    attitude loop: ~0.154 s; ``mock_vehicle.plant.PlantParams.acc_lag_s``); ``inner_kp_per_s2``, ``inner_kd_per_s``:
+    the telemetry-rate inner loop that tracks the period's command between control steps (guidance/inner_loop.py; 0,
+    0: none), restarted at every control step (``period_s``). tau = 0: the command is flown at once, and the
+    prediction is the closed form the escape has always used, whatever the loop (it has no error to correct)."""
+
+    acc_lag_s: float = 0.0
+    inner_kp_per_s2: float = 0.0
+    inner_kd_per_s: float = 0.0
+    period_s: float = 0.5
+
+
+NO_LAG = OwnModel()
+
+
+def own_response(t_s: np.ndarray, commit_s: float, model: OwnModel, sub_steps: int = 20) -> tuple[np.ndarray, ...]:
+    """(alpha, beta, gamma), each like t_s (sample times from 0): the own vehicle's displacement
+
+        x(t) = alpha(t) a_1 + beta(t) a_2 + gamma(t) a_f0
+
+    from rest (x = v = 0) when it is commanded a_1 until commit_s and a_2 after it, flying a_f0 at t = 0 (per axis:
+    the model is linear and the axes decouple; no drag, no saturation). The airframe: tau a_f' = a_c - a_f with
+    a_c = a_k + k_p (r_ref - x) + k_d (v_ref - v), the reference (r_ref, v_ref) flying a_k exactly from the state at
+    the last control step (every period_s), a_k the command of the period. Integrated exactly between sub-steps
+    (matrix exponential of the linear system; the reference's reset at a step is a jump of the state)."""
+    from scipy.linalg import expm
+    t = np.asarray(t_s, dtype=float)
+    tau, kp, kd = float(model.acc_lag_s), float(model.inner_kp_per_s2), float(model.inner_kd_per_s)
+    if not tau > 0.0:
+        raise ValueError(f"own_response needs a lag > 0 (tau = 0 has the closed form), got {tau!r}")
+    # state y = (x, v, a_f, r_ref, v_ref, a_k): a_k constant within a period (an input held as a state)
+    M = np.zeros((6, 6))
+    M[0, 1] = 1.0
+    M[1, 2] = 1.0
+    M[2, :] = np.array([-kp, -kd, -1.0, kp, kd, 1.0]) / tau
+    M[3, 4] = 1.0
+    M[4, 5] = 1.0
+    # a grid fine enough to hit the sample times, the commit time and the control steps (their common divisor)
+    h = float(t[1] - t[0]) / sub_steps if t.size > 1 else commit_s / sub_steps
+    events = {"commit": float(commit_s), "period": float(model.period_s)}
+    for name, v in events.items():
+        if abs(v / h - round(v / h)) > 1e-6:
+            raise ValueError(f"own_response: the {name} time {v} s is not a multiple of the step {h} s")
+    Phi = expm(M * h)
+    n_end = int(round(t[-1] / h))
+    k_commit, k_period = int(round(commit_s / h)), int(round(model.period_s / h))
+    out = []
+    for a1, a2, af0 in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)):
+        y = np.array([0.0, 0.0, af0, 0.0, 0.0, a1])
+        xs = np.empty(n_end + 1)
+        for k in range(n_end + 1):
+            if k > 0 and k % k_period == 0:
+                y[3], y[4] = y[0], y[1]              # the inner loop restarts from the state of the control step
+            if k == k_commit:
+                y[5] = a2
+            xs[k] = y[0]
+            y = Phi @ y
+        out.append(np.interp(t, np.arange(n_end + 1) * h, xs))
+    return tuple(out)
+
+
 class _EscapeGrid(NamedTuple):
     """The escape's constants for one (horizon, sampling, commit time, a_max, directions): built once."""
 
     t: np.ndarray               # (T + 1,) sample times, t[0] = 0
-    half_t2: np.ndarray         # 0.5 t^2: the own displacement per unit of a command held from t = 0
-    alpha: np.ndarray           # (T + 1,) the own displacement alpha(t) a_1 + beta(t) a_2
+    half_t2: np.ndarray         # the own displacement per unit of a command held from t = 0 (0.5 t^2 without a lag)
+    alpha: np.ndarray           # (T + 1,) the own displacement alpha(t) a_1 + beta(t) a_2 (+ gamma(t) a_f0)
     beta: np.ndarray
+    gamma: np.ndarray           # (T + 1,) per unit of the acceleration flown at t = 0 (0 without a lag)
     t_seg: np.ndarray           # (T,) the segments' end times
     cand_fixed: np.ndarray      # (C - 1, 2) the candidates a_1 after a_nom: 0, then the directions at a_max / 2 and a_max
     keep_right_den: float       # 0.5 t[-1]^2 a_max
@@ -98,14 +162,21 @@ class _EscapeGrid(NamedTuple):
 
 
 @functools.lru_cache(maxsize=16)
-def _escape_grid(horizon_s: float, sample_s: float, commit_s: float, a_max: float, directions: int) -> _EscapeGrid:
+def _escape_grid(horizon_s: float, sample_s: float, commit_s: float, a_max: float, directions: int,
+                 own_model: OwnModel = NO_LAG) -> _EscapeGrid:
     t = np.arange(0, int(round(horizon_s / sample_s)) + 1) * sample_s
     tc = min(commit_s, t[-1])
-    alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
-    beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
+    if own_model.acc_lag_s > 0.0:
+        alpha, beta, gamma = own_response(t, tc, own_model)
+        held = alpha + beta
+    else:
+        alpha = np.where(t <= tc, 0.5 * t ** 2, tc * (t - 0.5 * tc))
+        beta = np.where(t <= tc, 0.0, 0.5 * (t - tc) ** 2)
+        held, gamma = 0.5 * t ** 2, np.zeros_like(t)
     dirs = _directions(directions)
     cand_fixed = np.concatenate([np.zeros((1, 2)), 0.5 * a_max * dirs, a_max * dirs])
-    g = _EscapeGrid(t, 0.5 * t ** 2, alpha, beta, t[1:].copy(), cand_fixed, float(0.5 * t[-1] ** 2 * a_max), float(a_max ** 2))
+    g = _EscapeGrid(t, held, alpha, beta, gamma, t[1:].copy(), cand_fixed, float(0.5 * t[-1] ** 2 * a_max),
+                    float(a_max ** 2))
     for v in g:
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
@@ -113,9 +184,10 @@ def _escape_grid(horizon_s: float, sample_s: float, commit_s: float, a_max: floa
 
 
 @functools.lru_cache(maxsize=16)
-def _escape_args(bp: BackstopParams, commit_s: float) -> tuple:
-    """backstop_kernels.escape_rows' arguments after the sensed data: the grid and the parameters, once per (bp, commit_s)."""
-    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions)
+def _escape_args(bp: BackstopParams, commit_s: float, own_model: OwnModel = NO_LAG) -> tuple:
+    """backstop_kernels.escape_rows' arguments after the sensed data: the grid and the parameters, once per
+    (bp, commit_s, own_model)."""
+    g = _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions, own_model)
     return (g.t, g.half_t2, g.alpha, g.beta, g.t_seg, g.cand_fixed, float(bp.a_max_m_s2), float(bp.escape_sample_s),
             float(bp.u_noise_m_s), float(bp.escape_threat_weight), float(bp.escape_planned_weight), bool(bp.escape_two_phase),
             bool(bp.escape_urgency), float(bp.tau_min_s), float(bp.escape_d_floor_m), float(bp.escape_keep_right),
@@ -131,7 +203,8 @@ def _directions(k: int) -> np.ndarray:
 def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, threat: np.ndarray,
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
                side_pref: np.ndarray | None = None, hover: np.ndarray | None = None,
-               own_dist_m_s2: np.ndarray | None = None, brake_hyp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               own_dist_m_s2: np.ndarray | None = None, brake_hyp: np.ndarray | None = None,
+               own_model: OwnModel = NO_LAG, own_acc_m_s2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -165,6 +238,10 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     horizon in every prediction of the own vehicle, the trigger's included (BackstopParams.own_disturbance).
     brake_hyp (m,) bool, optional: the threat entries that get the braking hypothesis; the others are predicted at
     constant velocity only (None: every threat; BackstopParams.escape_brake_hypothesis).
+    own_model: how the own airframe flies a command (:class:`OwnModel`: its acceleration lag and the inner loop);
+    with a lag the own vehicle's displacement under a_1 then a_2 is alpha a_1 + beta a_2 + gamma a_f0
+    (:func:`own_response`), a_f0 = own_acc_m_s2 (n, 2), the acceleration each row flies now (the controller's last
+    command; None: 0). Without a lag (the default) the prediction is the closed form 0.5 t^2 a.
     Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
@@ -177,11 +254,14 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     a_out, active = backstop_kernels.escape_rows(
         np.ascontiguousarray(own, dtype=float), a_out, np.ascontiguousarray(sensed_states, dtype=float),
         np.ascontiguousarray(owner, dtype=np.int64), np.ascontiguousarray(threat, dtype=bool),
-        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float), *_escape_args(bp, commit_s),
+        np.ascontiguousarray(trigger_m, dtype=float), np.ascontiguousarray(clear_m, dtype=float),
+        *_escape_args(bp, commit_s, own_model),
         np.zeros((n, 2)) if side_pref is None else np.ascontiguousarray(side_pref, dtype=float),
         np.zeros(sensed_states.shape[0], dtype=bool) if hover is None else np.ascontiguousarray(hover, dtype=bool),
         np.zeros((n, 2)) if own_dist_m_s2 is None else np.ascontiguousarray(own_dist_m_s2, dtype=float),
-        np.ones(sensed_states.shape[0], dtype=bool) if brake_hyp is None else np.ascontiguousarray(brake_hyp, dtype=bool))
+        np.ones(sensed_states.shape[0], dtype=bool) if brake_hyp is None else np.ascontiguousarray(brake_hyp, dtype=bool),
+        _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions, own_model).gamma,
+        np.zeros((n, 2)) if own_acc_m_s2 is None else np.ascontiguousarray(own_acc_m_s2, dtype=float))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

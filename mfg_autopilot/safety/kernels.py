@@ -212,10 +212,12 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
 
 
 @njit(cache=True)
-def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist):
+def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist, gamma, acc0):
     """Tracks of the entries ent relative to the own coasting vehicle into rel (len(ent), T + 1, 2), d + t u, and the
     braking ones of the threats among them into rel_b (rel minus back[b_of[entry]]), in entry order. dist (n, 2): each
-    row's own disturbance, held over the horizon: the own vehicle drifts 0.5 t^2 dist besides (0: coasting alone)."""
+    row's own disturbance, held over the horizon: the own vehicle drifts 0.5 t^2 dist besides (0: coasting alone).
+    gamma (T + 1,) and acc0 (n, 2): the own vehicle also moves gamma(t) acc0 with the acceleration it flies now (an
+    airframe's lag: backstop.OwnModel; gamma 0 without one)."""
     T1 = t.shape[0]
     nb = 0
     for q in range(ent.shape[0]):
@@ -227,9 +229,11 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist):
         uy = sensed_states[e, 3] - own[o, 3]
         gx = dist[o, 0]
         gy = dist[o, 1]
+        fx = acc0[o, 0]
+        fy = acc0[o, 1]
         for s in range(T1):
-            rel[q, s, 0] = dx + t[s] * ux - 0.5 * (t[s] * t[s]) * gx
-            rel[q, s, 1] = dy + t[s] * uy - 0.5 * (t[s] * t[s]) * gy
+            rel[q, s, 0] = dx + t[s] * ux - 0.5 * (t[s] * t[s]) * gx - gamma[s] * fx
+            rel[q, s, 1] = dy + t[s] * uy - 0.5 * (t[s] * t[s]) * gy - gamma[s] * fy
         j = b_of[e]
         if j >= 0:
             for s in range(T1):
@@ -243,14 +247,16 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist):
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
                 keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, trigger_coast, side_over_keep_right,
-                hard_fraction, side_pref, hover, dist, brake_hyp):
+                hard_fraction, side_pref, hover, dist, brake_hyp, gamma, acc0):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
     least one threat. Same operations, in the same order, as the numpy code (module docstring). hover (m,) bool: the
     hovering threat entries; with trigger_coast a row is also active if coasting (a = 0 over the horizon) brings such an
     entry below its trigger; with side_over_keep_right such an entry has no keep-right term in a row with a side. dist
     (n, 2): each row's own disturbance (the acceleration beyond its command it flies: a gust), in every prediction.
     brake_hyp (m,) bool: the threats that may also brake to a stop (the others' braking track is their constant-velocity
-    one, so the minimum over both hypotheses is that one's)."""
+    one, so the minimum over both hypotheses is that one's). half_t2, alpha, beta, gamma (T + 1,) and acc0 (n, 2): the
+    own vehicle's displacement half_t2 a (a held) or alpha a_1 + beta a_2, plus gamma acc0 (the acceleration it flies
+    now; backstop.OwnModel)."""
     n = own.shape[0]
     m = sensed_states.shape[0]
     T1 = t.shape[0]
@@ -289,7 +295,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     # rows whose nominal command (held) brings a threat below its trigger
     rel_t = np.empty((n_thr, T1, 2))
     rel_tb = np.empty((n_thr, T1, 2))
-    _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb, dist)
+    _tracks(own, sensed_states, owner, ti, t, b_of, back, rel_t, rel_tb, dist, gamma, acc0)
     for j in range(n_thr):
         o = owner[ti[j]]
         # (a threat without the braking hypothesis has its braking track equal to its constant-velocity one: skipped)
@@ -333,7 +339,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             q += 1
     rel = np.empty((n_ent, T1, 2))
     rel_b = np.empty((n_bt, T1, 2))
-    _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist)
+    _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist, gamma, acc0)
     e_row = np.empty(n_ent, dtype=np.int64)
     b_index = np.full(n_ent, -1, dtype=np.int64)
     wgt = np.empty(n_ent)
