@@ -46,9 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("sim", help="in-process simulator: the controller core driving all N UAVs at once")
     _add_common(sim)
     sim.add_argument("--physics-dt-s", type=float, default=0.1, help="plant sub-step (default: 0.1 s)")
-    sim.add_argument("--acc-lag-s", type=float, default=0.0, metavar="TAU",
+    sim.add_argument("--acc-lag-s", type=float, default=None, metavar="TAU",
                      help="the airframes fly their acceleration command through a first-order lag of TAU s (PX4's "
-                          "attitude loop: about 1 / MC_ROLL_P = 0.154 s); default 0: at once, as the paper's eq. 9")
+                          "attitude loop: about 1 / MC_ROLL_P = 0.154 s); 0: at once, as the paper's eq. 9; default: "
+                          "the preset's airframe, PX4's 0.154 s for the default guidance, 0 for the paper's presets")
     sim.add_argument("--inner-loop", action=argparse.BooleanOptionalAction, default=None,
                      help="track each period's command at every physics sub-step (TrackingParams.inner_loop: against "
                           "an airframe's lag, --acc-lag-s, and gusts); default: the preset's (on in the default "
@@ -102,9 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the controllers' zenoh json5 (credentials); '{i}' in the name is the vehicle id")
     run.add_argument("--mavlink-key", default=None, metavar="FILE",
                      help="MAVLink 2 signing between every controller and its vehicle (64 hex chars, mode 600)")
-    run.add_argument("--acc-lag-s", type=float, default=0.0, metavar="TAU",
+    run.add_argument("--acc-lag-s", type=float, default=None, metavar="TAU",
                      help="the mock vehicles fly their acceleration command through a first-order lag of TAU s "
-                          "(mock-vehicle --acc-lag-s; PX4's attitude loop: about 0.154 s); default 0")
+                          "(mock-vehicle --acc-lag-s; PX4's attitude loop: about 0.154 s); default: the preset's "
+                          "airframe, PX4's 0.154 s for the default guidance, 0 for the paper's presets")
     run.add_argument("--inner-loop", action=argparse.BooleanOptionalAction, default=None,
                      help="every controller tracks its command at each LOCAL_POSITION_NED between steps "
                           "(mfg-autopilot --inner-loop; against --acc-lag-s and gusts); lockstep steps the mocks by "
@@ -300,7 +302,8 @@ def _cmd_run(args) -> int:
     if args.inner_loop is not None:
         with_inner_loop(preset_by_name(args.preset), args.inner_loop)   # a preset without it fails before any process starts
     try:
-        PlantParams(acc_lag_s=args.acc_lag_s)          # the plant's own check, before any process starts
+        if args.acc_lag_s is not None:
+            PlantParams(acc_lag_s=args.acc_lag_s)      # the plant's own check, before any process starts
     except ValueError as exc:
         raise ValueError(f"--acc-lag-s: {exc}") from None
     if args.mavlink_key:

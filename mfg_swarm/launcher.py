@@ -39,7 +39,7 @@ from .flightlog import lockstep_grid, read_controller_log, read_new_lines, read_
 from .metrics import separation_guarantee
 from .results import METRIC_KEYS, Trajectories, compute_metrics, write_json_atomic, write_npz_atomic
 from .scenarios import Scenario
-from .sim import plant_params_for
+from .sim import airframe_acc_lag_s, plant_params_for
 
 __all__ = ["RunConfig", "run_swarm", "LaunchError"]
 
@@ -109,7 +109,9 @@ class RunConfig:
     gcs_url: str = "none"
     physics_dt_s: float | None = None         # the mocks' plant sub-step; None: 0.1 s in lockstep (the simulator's, bit
                                               # for bit), REALTIME_PHYSICS_DT_S in real time
-    acc_lag_s: float = 0.0                    # the mocks' acceleration response lag (mock-vehicle --acc-lag-s)
+    acc_lag_s: float | None = None            # the mocks' acceleration response lag (mock-vehicle --acc-lag-s); None:
+                                              # the preset's airframe (sim.airframe_acc_lag_s: PX4's for the default
+                                              # guidance, none for the paper's)
     inner_loop: bool | None = None            # every controller's telemetry-rate inner loop (mfg-autopilot
                                               # --inner-loop); None: the preset's (on in the default guidance's)
     time_limit_s: float | None = None
@@ -130,6 +132,11 @@ class RunConfig:
     def plant_dt_s(self) -> float:
         """The mocks' plant sub-step: physics_dt_s, or by default the lockstep or real-time one."""
         return self.physics_dt_s or (LOCKSTEP_PHYSICS_DT_S if self.lockstep else REALTIME_PHYSICS_DT_S)
+
+    @property
+    def acc_lag_flown_s(self) -> float:
+        """The mocks' acceleration lag: ``acc_lag_s``, or the preset's airframe's (sim.airframe_acc_lag_s)."""
+        return self.acc_lag_s if self.acc_lag_s is not None else airframe_acc_lag_s(preset_by_name(self.preset_name))
 
     @property
     def inner_loop_on(self) -> bool:
@@ -502,8 +509,8 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
                     "--dt-s", repr(float(physics_dt_s if inner_on and cfg.lockstep else preset.dt_s)), "--tlog", str(out / "vehicles" / f"vehicle{i}.tlog"), "--log-level", "WARNING"]
             if cfg.lockstep:
                 argv.append("--lockstep")
-            if cfg.acc_lag_s > 0:
-                argv.append(f"--acc-lag-s={float(cfg.acc_lag_s)!r}")
+            # always given: the mock's own default is PX4's lag, the paper's presets fly none
+            argv.append(f"--acc-lag-s={float(cfg.acc_lag_flown_s)!r}")
             v0 = getattr(sc, "initial_vel_m_s", None)
             if cfg.mission is None and v0 is not None:       # the scenario's start velocity (dense: at rest), else the wind's
                 argv.append(f"--initial-vel-m-s={float(v0[i, 0])!r},{float(v0[i, 1])!r}")
@@ -616,7 +623,7 @@ def run_swarm(cfg: RunConfig) -> tuple[Path, dict]:
     exit_codes = {c.name: c.p.returncode for c in controllers}
     traj, metrics = _collect(cfg, preset, n, out, wall_s)
     partial = reason != "completed" or any(code != 0 for code in exit_codes.values())
-    metrics.update({"path": "processes", "lockstep": cfg.lockstep, "inner_loop": cfg.inner_loop_on,
+    metrics.update({"path": "processes", "lockstep": cfg.lockstep, "inner_loop": cfg.inner_loop_on, "acc_lag_s": cfg.acc_lag_flown_s,
                     "lockstep_sub_step_ms": cfg.lockstep_sub_step_ms, "partial": partial, "end_reason": reason,
                     "controller_exit_codes": exit_codes, "killed": killed})
     write_npz_atomic(out / "trajectories.npz", traj.arrays())

@@ -19,6 +19,8 @@ __all__ = ["reproduce", "PAPER_NS", "MODES"]
 
 PAPER_NS = (9, 16, 25, 36, 49, 64, 81)
 MODES = (("hjb", 1.0, "HJB_1"), ("hjb", 100.0, "HJB_100"), ("mfg", None, "MFG"))
+REPRODUCTION_ACC_LAG_S = 0.0
+"""Every reproduction flies the paper's plant (eq. 9: the command flown at once), the default guidance too."""
 
 
 def _one(args) -> dict:
@@ -38,8 +40,10 @@ def _one(args) -> dict:
         if m.get("steps") == steps and m.get("seed") == seed and m.get("n") == n:
             m["first_collision_t_s"] = _first_collision_time(load_trajectories(out / "trajectories.npz"))
             return m
+    # the paper's plant, eq. 9, for every preset: the claims are the paper's, on its model (the default guidance's own
+    # default airframe flies PX4's lag; sim.airframe_acc_lag_s)
     cfg = SimConfig(scenario=make_scenario("paper", n), mode=mode, preset=preset_by_name(preset_name), seed=seed,
-                    steps=steps, range_m=range_m)
+                    steps=steps, range_m=range_m, acc_lag_s=REPRODUCTION_ACC_LAG_S)
     traj, m = simulate(cfg, progress=False)
     write_npz_atomic(out / "trajectories.npz", traj.arrays())
     write_json_atomic(out / "metrics.json", m)
@@ -119,7 +123,8 @@ def reproduce(out: Path, presets: list[str], ns=PAPER_NS, seeds=(0, 1, 2), steps
                     proc[(p, label)] = (m, results.get((p, label, 9), [None])[0])
                     continue
                 _, m = run_swarm(RunConfig(scenario=make_scenario("paper", 9), mode=mode, preset_name=p, out=d, seed=0,
-                                           steps=steps, range_m=rng, lockstep=True, progress=False))
+                                           steps=steps, range_m=rng, lockstep=True, progress=False,
+                                           acc_lag_s=REPRODUCTION_ACC_LAG_S))
                 sim_m = results.get((p, label, 9), [None])[0]
                 proc[(p, label)] = (m, sim_m)
                 log(f"  {p:8s} {label:8s} N=  9 processes (lockstep): {m['collision_pairs']} collided pairs, "

@@ -52,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--physics-dt-s", type=float, default=d.physics_dt_s, help="largest physics sub-step, s")
     p.add_argument("--acc-lag-s", type=float, default=d.acc_lag_s, metavar="TAU",
                    help="fly the acceleration command through a first-order lag of TAU s (param SIM_ACC_TAU; PX4's "
-                        "attitude loop: about 1 / MC_ROLL_P = 0.154 s); default 0: at once, as the paper's eq. 9")
+                        "attitude loop: about 1 / MC_ROLL_P = 0.154 s, the default); 0: at once, as the paper's eq. 9")
     p.add_argument("--dt-s", type=float, default=d.dt_s, help="lockstep control step, s")
     p.add_argument("--lockstep", action="store_true", help="simulated time advances one dt_s per setpoint (docs/lockstep.md)")
     p.add_argument("--lockstep-resend-hz", type=float, default=d.lockstep_resend_hz, help="lockstep: wall-clock re-send rate of telemetry")

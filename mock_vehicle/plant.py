@@ -28,6 +28,7 @@ import numpy as np
 __all__ = [
     "WindParams",
     "PlantParams",
+    "PX4_ACC_LAG_S",
     "NoiseStream",
     "noise_stream",
     "initial_wind_velocity",
@@ -75,6 +76,12 @@ class WindParams:
         return self.V_o @ self.V_o.T / (2.0 * self.c0_per_s)
 
 
+PX4_ACC_LAG_S = 0.154
+"""PX4's acceleration response lag, s: its attitude loop is a P on the angle, MC_ROLL_P = MC_PITCH_P = 6.5 /s by
+default (mc_att_control_params.c), over a much faster rate loop: about 1 / 6.5 s. The mock vehicle's default
+(``mock-vehicle --acc-lag-s``, SIM_ACC_TAU) and the simulator's for the default guidance (``mfg_swarm.sim``)."""
+
+
 @dataclass(frozen=True)
 class PlantParams:
     wind: WindParams = field(default_factory=WindParams)
@@ -85,10 +92,11 @@ class PlantParams:
     ceil(dt / physics_dt_s) equal sub-steps with the acceleration held."""
     acc_lag_s: float = 0.0
     """Time constant of the airframe's acceleration response, s: the acceleration flown follows the (saturated)
-    command as a first-order lag, da/dt = (a_cmd - a) / acc_lag_s (``lagged_acc_m_s2``). 0 (the default): the
-    command is flown at once, as eq. 9 writes it. A multicopter tilts to accelerate, and PX4's attitude loop is a
+    command as a first-order lag, da/dt = (a_cmd - a) / acc_lag_s (``lagged_acc_m_s2``). 0 (the plant's default, the
+    paper's model): the command is flown at once, as eq. 9 writes it. A multicopter tilts to accelerate, and PX4's attitude loop is a
     P on the angle (MC_ROLL_P = MC_PITCH_P = 6.5 /s by default, mc_att_control_params.c) over a much faster rate
-    loop: about 1 / 6.5 = 0.154 s, more with slow motors. The paper's model and the controller assume none."""
+    loop: about 1 / 6.5 = 0.154 s (PX4_ACC_LAG_S), more with slow motors. The paper's model assumes none; the mock
+    vehicle flies PX4's by default."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.acc_limit_m_s2) and self.acc_limit_m_s2 > 0):

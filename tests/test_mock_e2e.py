@@ -282,18 +282,20 @@ def _telemetry_states(samples) -> np.ndarray:
 
 
 def test_lockstep_is_bit_for_bit_reproducible_and_matches_the_plant(tmp_path):
-    a, accs = _drive_lockstep(seed=7, n_steps=12, tmp_path=tmp_path, tag="a")
-    b, _ = _drive_lockstep(seed=7, n_steps=12, tmp_path=tmp_path, tag="b")
+    # (the mock's default airframe flies PX4's lag: the next test; here the paper's plant, --acc-lag-s 0)
+    a, accs = _drive_lockstep(7, 12, tmp_path, "a", "--acc-lag-s", "0")
+    b, _ = _drive_lockstep(7, 12, tmp_path, "b", "--acc-lag-s", "0")
     assert a == b  # identical telemetry (receive times are not part of equality)
     # ... and equal to the in-process plant with the same seed and vehicle id (float32 wire)
     np.testing.assert_array_equal(_telemetry_states(a), _plant_states(accs, PlantParams()))
-    c, _ = _drive_lockstep(seed=8, n_steps=3, tmp_path=tmp_path, tag="c")
+    c, _ = _drive_lockstep(8, 3, tmp_path, "c", "--acc-lag-s", "0")
     assert c[1:] != a[1:4]  # another seed, another wind
 
 
 def test_lockstep_with_an_acceleration_lag_matches_the_plant_with_it(tmp_path):
-    # the mock process flies --acc-lag-s as the simulator's plant does (PlantParams.acc_lag_s), bit for bit
-    a, accs = _drive_lockstep(7, 12, tmp_path, "lag", "--acc-lag-s", "0.154")
+    # the mock process flies its default lag (PX4's, SIM_ACC_TAU) as the simulator's plant does (PlantParams.acc_lag_s),
+    # bit for bit
+    a, accs = _drive_lockstep(7, 12, tmp_path, "lag")
     lagged = _plant_states(accs, PlantParams(acc_lag_s=0.154))
     np.testing.assert_array_equal(_telemetry_states(a), lagged)
     assert np.abs(_plant_states(accs, PlantParams())[-1, 2:] - lagged[-1, 2:]).max() > 0.05   # the lag is flown, not ignored
