@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from .plant import PX4_ACC_LAG_S
+
 __all__ = ["ParamSpec", "PARAM_SPECS", "ParamTable"]
 
 
@@ -35,7 +37,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("SIM_WIND_V12", 0.0, -10.0, 10.0, "m/s/sqrt(s)", "V_o[0][1]: wind diffusion (eq. 1)"),
     ParamSpec("SIM_WIND_V21", 0.0, -10.0, 10.0, "m/s/sqrt(s)", "V_o[1][0]: wind diffusion (eq. 1)"),
     ParamSpec("SIM_WIND_V22", 0.1, -10.0, 10.0, "m/s/sqrt(s)", "V_o[1][1]: wind diffusion (eq. 1)"),
-    ParamSpec("SIM_ACC_TAU", 0.154, 0.0, 2.0, "s", "Acceleration response lag: first-order time constant (0: none; PX4's "
+    ParamSpec("SIM_ACC_TAU", PX4_ACC_LAG_S, 0.0, 2.0, "s", "Acceleration response lag: first-order time constant (0: none; PX4's "
               "attitude loop ~ 1 / MC_ROLL_P = 0.154 s, the default)"),
     ParamSpec("SIM_ARM_DENY", 0.0, 0.0, 1.0, "bool", "1: refuse arming as a failed PX4 preflight check would"),
     ParamSpec("MIS_TAKEOFF_ALT", 2.5, 0.0, 1000.0, "m", "Takeoff altitude above home when MAV_CMD_NAV_TAKEOFF gives none (PX4)"),
