@@ -204,13 +204,20 @@ class _DefaultBase:
         "measured"): hovering (hover (m,)), not seen at the previous sample, or braking along their previous velocity
         by more than escape_brake_hypothesis_min_m_s2 beyond the observing row's own disturbance (own_dist (n, 2), the
         disturbance observer's estimate, the common mode; None: none known). prev_v: _entry_prev_v's."""
+        return hover | ~prev_v[1] | self._braking_measured(sn, prev_v, own_dist)
+
+    def _braking_measured(self, sn: Neighbours, prev_v: tuple[np.ndarray, np.ndarray],
+                          own_dist: np.ndarray | None) -> np.ndarray:
+        """(m,) bool: the sensed entries seen at the previous sample that braked along their previous velocity by more
+        than escape_brake_hypothesis_min_m_s2 beyond the observing row's own disturbance (own_dist (n, 2), the common
+        mode; None: none known) since then. prev_v: _entry_prev_v's."""
         pv, known = prev_v
         acc = (sn.states[:, 2:4] - pv) / self.preset.dt_s
         if own_dist is not None:
             acc = acc - own_dist[sn.owner]
         speed = np.maximum(np.linalg.norm(pv, axis=1), 1e-9)
         along = (acc[:, 0] * pv[:, 0] + acc[:, 1] * pv[:, 1]) / speed
-        return hover | ~known | (along < -self.preset.backstop.escape_brake_hypothesis_min_m_s2)
+        return known & (along < -self.preset.backstop.escape_brake_hypothesis_min_m_s2)
 
     def _cbf_share(self, sn: Neighbours, rows: np.ndarray) -> np.ndarray | None:
         """(m,) each sensed entry's share of its barrier constraint (backstop.cbf_acc), or None: crowd_cbf_share for
@@ -256,8 +263,10 @@ class _DefaultBase:
         prev = getattr(self, "_own_a_prev", None)
         return {"own_model": model, "own_acc_m_s2": prev[1] if prev is not None and prev[0] == step - 1 else None}
 
-    def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray) -> np.ndarray | None:
-        """(n, 2) the side each row passes a hovering vehicle off the plan on (MFG; HJB_d: None, nothing is off it)."""
+    def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray,
+                     at_m: np.ndarray | None = None) -> np.ndarray | None:
+        """(n, 2) the side each row passes a hovering vehicle off the plan on (MFG; HJB_d: None, nothing is off it);
+        at_m (m, 2), optional: where each entry is taken to be (None: where it is sensed)."""
         return None
 
     def _gap_pairs(self, sn: Neighbours, covered: np.ndarray) -> np.ndarray:
@@ -284,7 +293,8 @@ class _DefaultBase:
         # records this step's
         seen = self._seen_snapshot() if bp.escape_brake_hypothesis == "measured" else None
         unplanned = self._unplanned(sn.states, sn.ids)
-        unplanned |= self._unplanned_by_braking(sn, obs.step, unplanned, own)
+        by_braking = self._unplanned_by_braking(sn, obs.step, unplanned, own)
+        unplanned |= by_braking
         if self._detour_state is not None and np.any(unplanned):
             # a neighbour that flies the plan deflected around a lost vehicle (_detour) is on the plan of a row that
             # senses that vehicle: the same deflection of the neighbour's own particle (by its id), which every such
@@ -305,7 +315,8 @@ class _DefaultBase:
             own_dev = np.linalg.norm(self._own_err * np.array([1.0, 1.0, ps, ps]), axis=1)
             idx = np.flatnonzero(unplanned & (own_dev[sn.owner] > bp.common_mode_min_own_dev_m))
             unplanned[idx] = (self._unplanned(sn.states[idx] - self._own_err[sn.owner[idx]])
-                              | self._lost(sn.states[idx], None if sn.ids is None else sn.ids[idx]))
+                              | self._lost(sn.states[idx], None if sn.ids is None else sn.ids[idx])
+                              | (by_braking[idx] & bp.common_mode_keeps_braking))
         plan = getattr(self, "plan", None)
         if plan is not None and sn.states.shape[0] and bp.own_slot_claim:
             # a sensed vehicle on the own particle's place is not on the plan whatever particle it is near: the own
@@ -342,14 +353,28 @@ class _DefaultBase:
             sp = self._spacing_m()
             u_trig, u_clear = min(bp.unplanned_trigger_m, 0.5 * sp), min(bp.unplanned_target_m, 0.6 * sp)
             e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
+            # the sensed vehicles' velocities one sample ago, by entry (the braking hypothesis, escape_braking_as_hover)
+            prev_v = self._entry_prev_v(sn, obs.step, seen) if seen is not None else None
             # a hovering vehicle off the plan (failed in Hold, drifting): the rules of BackstopParams.hover_max_speed_m_s
             hover = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
             # ... or hovered lately and is still off the plan (BackstopParams.hover_latch_s)
             hover = self._hover_latched(sn, obs.step, unplanned, hover)
+            # ... and one braking to its stop (BackstopParams.escape_braking_as_hover): the full reach (not the flow's),
+            # and, below, the hovering one's clearance, lane side (at its braking stop point) and coast trigger
+            stopping = np.zeros_like(hover)
+            side_at = None
+            if bp.escape_braking_as_hover and prev_v is not None:
+                stopping = unplanned & ~hover & self._braking_measured(sn, prev_v, self._own_dist)
+                if np.any(stopping):
+                    e_trig[stopping], e_clear[stopping] = u_trig, u_clear
+                    side_at = sn.states[:, 0:2].copy()
+                    v = sn.states[stopping, 2:4]
+                    side_at[stopping] += v * (np.hypot(v[:, 0], v[:, 1]) / (2.0 * a_max))[:, None]
             sp_now = self._spacing_now_m()
             if bp.unplanned_hover_clear_now:
                 # its clearance by the spacing flown now
-                e_clear[hover] = np.maximum(e_clear[hover], min(bp.unplanned_target_m, 0.6 * sp_now))
+                hc = hover | stopping
+                e_clear[hc] = np.maximum(e_clear[hc], min(bp.unplanned_target_m, 0.6 * sp_now))
             if bp.unplanned_hover_trigger_now:
                 # and its trigger
                 e_trig[hover] = np.maximum(e_trig[hover], min(bp.unplanned_trigger_m, 0.5 * sp_now))
@@ -392,15 +417,14 @@ class _DefaultBase:
                                  np.where(yl, y_clear, min(bp.escape_planned_clear_m, bp.escape_planned_fraction * sp)))
                 # against a hovering threat coasting also wakes the escape (BackstopParams.escape_trigger_coast), and
                 # the lane side replaces keep-right (escape_side_over_keep_right)
-                hover_threat = threat & hover
-                threat = threat | gap | yl
+                hover_threat = threat & (hover | stopping)
                 # which threats may also be braking to a stop (BackstopParams.escape_brake_hypothesis; None: every one)
-                prev_v = self._entry_prev_v(sn, obs.step, seen) if seen is not None else None
                 bh = self._may_brake(sn, prev_v, hover, self._own_dist) if prev_v is not None else None
+                threat = threat | gap | yl
                 # the own airframe's lag, when it has one (safety.backstop.OwnModel)
                 airframe = self._own_airframe(obs.step)
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
-                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat), hover_threat, od, brake_hyp=bh,
+                                        self.preset.dt_s, self._escape_side(own, sn, hover_threat, side_at), hover_threat, od, brake_hyp=bh,
                                         **airframe)
             if np.any(push) and bp.crowd_cbf:
                 # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
@@ -1046,7 +1070,8 @@ class DefaultMFGController(_DefaultBase):
         out[idx] = np.hypot(dr[:, 0], dr[:, 1]) < bp.escape_yield_on_plan_m
         return out
 
-    def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray) -> np.ndarray | None:
+    def _escape_side(self, own: np.ndarray, sn: Neighbours, hover_threat: np.ndarray,
+                     at_m: np.ndarray | None = None) -> np.ndarray | None:
         """(n, 2): for a row with a threat entry that hovers (hover_threat (m,): slower than ``hover_max_speed_m_s``, failed in
         Hold, drifting), the unit vector across its own particle's track on the side of that track the nearest such vehicle is *not* on; 0
         for the other rows; None when there is none (backstop.escape_acc: a candidate towards the other side costs
@@ -1059,7 +1084,10 @@ class DefaultMFGController(_DefaultBase):
 
         Why: a UAV coming up to a failed vehicle nearly head-on chose a side at one step and the other at the next: in
         dense --fail-vehicle N = 5,000 seed 24, UAV 1228 commanded +0.47, -0.84, +1.97, -1.93 m/s^2 across its track on
-        four consecutive steps and passed the failed vehicle at 0.094 m."""
+        four consecutive steps and passed the failed vehicle at 0.094 m.
+
+        at_m (m, 2), optional: where each entry is taken to be for the side (None: where it is sensed); a vehicle still
+        braking to its Hold is taken at its braking stop point (BackstopParams.escape_braking_as_hover)."""
         bp = self.preset.backstop
         if bp.escape_side_commit <= 0 or self.plan is None:
             return None
@@ -1068,7 +1096,7 @@ class DefaultMFGController(_DefaultBase):
             return None
         rows = sn.owner[idx]
         first = nearest_per_row(rows, sn.states[idx, 0:2] - own[rows, 0:2])      # the nearest hovering threat of each row
-        r, q = rows[first], sn.states[idx[first], 0:2]
+        r, q = rows[first], (sn.states if at_m is None else at_m)[idx[first], 0:2]
         part = self.plan.states[self.own_index[r]]
         vp = part[:, 2:4]
         vn = np.hypot(vp[:, 0], vp[:, 1])

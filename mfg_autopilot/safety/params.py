@@ -71,6 +71,11 @@ class BackstopParams:
     push_flow_reach: bool = True
     common_mode: bool = True           # MFG: a vehicle off the plan by the own deviation (a shared gust) is not unplanned
     common_mode_min_own_dev_m: float = 0.2   # ... checked only for rows this far off their own particle (same metric)
+    # ... but a vehicle the braking test flagged (its braking beyond the observer's own disturbance: the common mode
+    # already taken off) stays unplanned: re-checked by position only it was cleared, in a gust, in the 0.5 s it had to
+    # be passed in (circle --gust with a failure, N = 100 seed 81: UAV 9 behind the failed 10, flagged at 0.85 s and
+    # cleared; thirtieth session)
+    common_mode_keeps_braking: bool = True
     # MFG: the escape manoeuvre against unplanned vehicles (backstop.escape_acc) instead of the
     # single half-plane push; it keeps clear of every sensed vehicle while avoiding the threat
     escape: bool = True
@@ -204,6 +209,14 @@ class BackstopParams:
     # is measured"). HJB_d keeps no velocity history: every threat, as with "threat".
     escape_brake_hypothesis: str = "measured"
     escape_brake_hypothesis_min_m_s2: float = 0.5
+    # MFG: an off-plan vehicle measured braking (along its velocity since the previous sample, beyond the common mode,
+    # by more than escape_brake_hypothesis_min_m_s2) is taken as the hovering one it is about to be: the unplanned
+    # response's full reach (not the flow's, unplanned_flow_*), the hovering clearance, the lane side (at its braking
+    # stop point, where PX4's Hold will hold it), the side memory and the coast trigger. A failed vehicle takes 1-2 s of
+    # PX4's jerk-limited Hold to get below hover_max_speed_m_s; in that time the UAVs behind it took it for a gust-blown
+    # neighbour (0.25 m trigger) and chose a side at one step and the other at the next, and with PX4's lag each
+    # reversal came 0.15 s later (thirtieth session, the 133 failure-inside-a-gust runs: docs/default_controller.md)
+    escape_braking_as_hover: bool = True
     # MFG: the escape's predictions and the barrier filter's constraints carry the own vehicle's disturbance (the
     # acceleration it flies beyond its command, from its own telemetry: guidance/disturbance.py, the observer of
     # TrackingParams.disturbance_smoothing) beyond own_disturbance_deadband_m_s2: a gust across the line of sight ate
