@@ -302,13 +302,15 @@ def test_a_crowded_row_still_escapes_a_vehicle_hovering_in_the_stream():
     # the plan flies for a row at stream speed that cannot brake short of it (BackstopParams.escape_hover_in_crowd and its
     # gates): 0.220 m over 400 steps
     fly = partial(_gust_flight, "paper", 300, 76, 60, True)
-    # (the default flight; with the PD Hold and the default backstop it collides since the hover latch:
-    # test_with_the_pd_hold_the_hover_latch_escapes_a_row_into_its_neighbour)
+    # (the default flight; with the PD Hold and the default backstop it collided from the hover latch to the thirtieth
+    # session: test_with_the_pd_hold_the_hover_latch_flight_passes_since_the_braking_flag_is_kept)
     m = _default_hold_flight("paper", 300, 76, 60)
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
     assert m["min_separation_m"] >= 0.2, m["min_separation_m"]
-    # the mechanism, on the flight it was measured on (the PD Hold, and no hover latch, which came later)
-    m = fly(dataclasses.replace(DEFAULT.backstop, hover_latch_s=0.0))
+    # the mechanism, on the flight it was measured on (the PD Hold, and no hover latch nor the braking-as-hover rules,
+    # which came later; with those two rules this held flight passes closer, 0.187 m, no pair)
+    m = fly(dataclasses.replace(DEFAULT.backstop, hover_latch_s=0.0, escape_braking_as_hover=False,
+                                common_mode_keeps_braking=False))
     assert m["collision_pairs"] == 0 and m["min_separation_m"] >= 0.2, (m["collided_pairs_list"], m["min_separation_m"])
     # (both with every off-plan vehicle predicted braking to a stop, as when the option was measured: escape_brake_hypothesis)
     off = fly(dataclasses.replace(THREAT, escape_hover_in_crowd=False))
@@ -420,15 +422,18 @@ def test_a_row_inside_the_safe_distance_of_a_failed_vehicle_stops_driving_into_i
     assert [10, 38] in off["collided_pairs_list"], off["collided_pairs_list"]
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18, open: held (no inner loop) and with the PD Hold (neither the default) "
-                                       "the hover latch keeps the failed vehicle's side rule, and UAV 88 escapes into UAV 89")
-def test_with_the_pd_hold_the_hover_latch_escapes_a_row_into_its_neighbour():
+def test_with_the_pd_hold_the_hover_latch_flight_passes_since_the_braking_flag_is_kept():
     # paper --gust N = 300 seed 76, vehicle 10 failing at 20.15 s into the PD Hold, the default backstop, no inner loop:
-    # UAV 88 escapes the failed vehicle, still hovering by the latch, on the side its row chose, at 0.4-0.6 m from UAV 89
-    # (six periods accelerating 0.7-1.9 m/s^2 towards it), 0.059 m. Without the latch 0.256 m; with PX4's Hold (the
-    # default) 0.255 m; with the inner loop (the default): the next test. Known and open; strict: when it passes, update this
+    # before the thirtieth session UAV 88 escaped the failed vehicle, still hovering by the latch, on the side its row
+    # chose, at 0.4-0.6 m from UAV 89 (six periods accelerating 0.7-1.9 m/s^2 towards it), 0.059 m (a strict xfail
+    # here until then). Without the latch 0.256 m; with PX4's Hold (the default) 0.255 m; with the inner loop (the
+    # default): the next test. Since the thirtieth session a vehicle the braking test flagged is not cleared as common
+    # mode (BackstopParams.common_mode_keeps_braking): no pair, 0.187 m (0.251 m with that rule alone)
     m = _gust_flight("paper", 300, 76, 60, True, DEFAULT.backstop, "pd")
     assert m["collision_pairs"] == 0, m["collided_pairs_list"]
+    before = _gust_flight("paper", 300, 76, 60, True, dataclasses.replace(
+        DEFAULT.backstop, escape_braking_as_hover=False, common_mode_keeps_braking=False), "pd")
+    assert [88, 89] in before["collided_pairs_list"], before["collided_pairs_list"]
 
 
 def test_with_the_inner_loop_the_pd_hold_flight_keeps_its_rows_apart():
