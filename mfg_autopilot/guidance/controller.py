@@ -198,19 +198,13 @@ class _DefaultBase:
         ``seen`` (_seen_snapshot's), or None (no ids)."""
         return None
 
-    def _may_brake(self, sn: Neighbours, prev_v: tuple[np.ndarray, np.ndarray], hover: np.ndarray,
-                   own_dist: np.ndarray | None) -> np.ndarray:
-        """(m,) bool: the sensed entries the escape also predicts braking to a stop (BackstopParams.escape_brake_hypothesis
-        "measured"): hovering (hover (m,)), not seen at the previous sample, or braking along their previous velocity
-        by more than escape_brake_hypothesis_min_m_s2 beyond the observing row's own disturbance (own_dist (n, 2), the
-        disturbance observer's estimate, the common mode; None: none known). prev_v: _entry_prev_v's."""
-        return hover | ~prev_v[1] | self._braking_measured(sn, prev_v, own_dist)
-
     def _braking_measured(self, sn: Neighbours, prev_v: tuple[np.ndarray, np.ndarray],
                           own_dist: np.ndarray | None) -> np.ndarray:
         """(m,) bool: the sensed entries seen at the previous sample that braked along their previous velocity by more
         than escape_brake_hypothesis_min_m_s2 beyond the observing row's own disturbance (own_dist (n, 2), the common
-        mode; None: none known) since then. prev_v: _entry_prev_v's."""
+        mode; None: none known) since then. prev_v: _entry_prev_v's. The escape predicts these braking to a stop
+        (BackstopParams.escape_brake_hypothesis "measured", with the hovering ones and those not seen before) and,
+        off the plan, takes them as hovering (escape_braking_as_hover)."""
         pv, known = prev_v
         acc = (sn.states[:, 2:4] - pv) / self.preset.dt_s
         if own_dist is not None:
@@ -355,6 +349,7 @@ class _DefaultBase:
             e_trig, e_clear = self._unplanned_reach(sn.states, unplanned, u_trig, u_clear)
             # the sensed vehicles' velocities one sample ago, by entry (the braking hypothesis, escape_braking_as_hover)
             prev_v = self._entry_prev_v(sn, obs.step, seen) if seen is not None else None
+            braked = self._braking_measured(sn, prev_v, self._own_dist) if prev_v is not None else None
             # a hovering vehicle off the plan (failed in Hold, drifting): the rules of BackstopParams.hover_max_speed_m_s
             hover = unplanned & (sn.states[:, 2] ** 2 + sn.states[:, 3] ** 2 < bp.hover_max_speed_m_s ** 2)
             # ... or hovered lately and is still off the plan (BackstopParams.hover_latch_s)
@@ -363,8 +358,8 @@ class _DefaultBase:
             # and, below, the hovering one's clearance, lane side (at its braking stop point) and coast trigger
             stopping = np.zeros_like(hover)
             side_at = None
-            if bp.escape_braking_as_hover and prev_v is not None:
-                stopping = unplanned & ~hover & self._braking_measured(sn, prev_v, self._own_dist)
+            if bp.escape_braking_as_hover and braked is not None:
+                stopping = unplanned & ~hover & braked
                 if np.any(stopping):
                     e_trig[stopping], e_clear[stopping] = u_trig, u_clear
                     side_at = sn.states[:, 0:2].copy()
@@ -419,7 +414,7 @@ class _DefaultBase:
                 # the lane side replaces keep-right (escape_side_over_keep_right)
                 hover_threat = threat & (hover | stopping)
                 # which threats may also be braking to a stop (BackstopParams.escape_brake_hypothesis; None: every one)
-                bh = self._may_brake(sn, prev_v, hover, self._own_dist) if prev_v is not None else None
+                bh = hover | ~prev_v[1] | braked if prev_v is not None else None
                 threat = threat | gap | yl
                 # the own airframe's lag, when it has one (safety.backstop.OwnModel)
                 airframe = self._own_airframe(obs.step)
