@@ -21,10 +21,11 @@ from mfg_swarm.sim import GustParams, SimConfig, simulate
 DEFAULT = preset_by_name("default")
 
 
-def _fail_in_gust(family: str, n: int, seed: int, steps: int, **rules) -> dict:
+def _fail_in_gust(family: str, n: int, seed: int, steps: int, detour: dict | None = None, **rules) -> dict:
     """metrics of `mfg-swarm sim --scenario family --n n --seed seed --gust --fail-vehicle 10 --fail-at 20.15` flown
-    for `steps`, with the backstop's rules changed as given."""
-    preset = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, **rules))
+    for `steps`, with the backstop's rules (and the detour's, ``detour``) changed as given."""
+    preset = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, **rules),
+                                 detour=dataclasses.replace(DEFAULT.detour, **(detour or {})))
     cfg = SimConfig(scenario=make_scenario(family, n, seed), mode="mfg", preset=preset, seed=seed, steps=steps,
                     fail_vehicle=10, fail_at_s=20.15, gust=GustParams())
     assert cfg.acc_lag_s == pytest.approx(0.154)          # the default airframe: PX4's lag
@@ -64,3 +65,20 @@ def test_a_vehicle_the_braking_test_flagged_is_not_cleared_as_common_mode():
     assert kept["min_separation_m"] > 0.2
     assert cleared["collision_pairs"] >= 1
     assert cleared["min_separation_m"] < 0.1
+
+
+def test_the_detour_deflects_a_lane_to_the_side_its_escape_already_took():
+    # Given dense N = 800 seed 152 (held out in the thirtieth round, where it was the one collision): UAV 130's lane
+    # runs right through the point where vehicle 10 stops. While 10 still brakes, UAV 130's escape takes the lane side
+    # at 10's braking stop point (right); a step later 10 hovers and the plan's detour picks the side from where it is
+    # sensed now (left)
+    one = _fail_in_gust("dense", 800, 152, 52)
+    two = _fail_in_gust("dense", 800, 152, 52, detour={"side_from_escape": False})
+
+    # Then with one decision (the detour takes the escape's remembered side) UAV 130 passes it at more than 0.3 m;
+    # with two the escape turns over (right, left, right, left on four steps) and meets it
+    assert DEFAULT.detour.side_from_escape
+    assert one["collision_pairs"] == 0
+    assert one["min_separation_m"] > 0.3
+    assert two["collision_pairs"] >= 1
+    assert two["min_separation_m"] < 0.1

@@ -1012,6 +1012,16 @@ class DefaultMFGController(_DefaultBase):
                               None if a_kin is None else a_kin[self.own_index[r]])
         mem_id, mem_side = self._detour_mem
         keep = mem_id[r] == tid
+        if dp.side_from_escape and self._side_mem is not None:
+            # a row whose escape already chose a side for that vehicle (at its braking stop point, before it hovered:
+            # BackstopParams.escape_braking_as_hover) deflects its lane to that side, not to the one its sensed position
+            # gives now: the two differ for the lane right through it, and the escape would turn over under the row
+            # (dense --fail-vehicle N = 800 seed 152, UAV 130: right at one step, left at the next, 0.035 m)
+            e_id, e_side = self._side_mem
+            vp = self.plan.states[self.own_index[r], 2:4]
+            sgn = np.sign(e_side[r, 0] * -vp[:, 1] + e_side[r, 1] * vp[:, 0])     # the remembered side . left of track
+            take = ~keep & (e_id[r] == tid) & (sgn != 0)
+            side[r] = np.where(take, sgn, side[r])
         side[r] = np.where(keep, mem_side[r], side[r])
         mem_id[:], mem_side[:] = -1, 0.0
         mem_id[r], mem_side[r] = tid, side[r]

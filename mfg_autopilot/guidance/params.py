@@ -137,6 +137,8 @@ class DetourParams:
     onset_from_m: float = 3.0       # a hovering vehicle this far from its own particle is detoured around ...
     onset_m: float = 6.0            # ... fully once it is this much farther (a smoothstep between)
     min_speed_m_s: float = 0.5      # slower particles are faded out (no lane)
+    side_from_escape: bool = True   # a row whose escape already passes that vehicle on a side (the escape's side memory,
+                                    # BackstopParams.escape_side_memory) deflects its lane to that side: one decision
 
     def __post_init__(self) -> None:
         for k in ("clear_fraction", "clear_max_m", "width_m", "plateau_m", "ramp_m", "onset_from_m", "onset_m",
