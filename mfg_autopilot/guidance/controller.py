@@ -182,12 +182,6 @@ class _DefaultBase:
         """(m,) bool: sensed vehicles lost to the plan (MFG; HJB_d: none known)."""
         return np.zeros(states.shape[0], dtype=bool)
 
-    def _lost_steady_lead(self, sn: Neighbours, step: int, prev_v: tuple[np.ndarray, np.ndarray] | None,
-                          threat: np.ndarray) -> np.ndarray:
-        """The sensed states (m, 4) the escape predicts from: a lost threat that accelerates steadily with its velocity
-        led by BackstopParams.escape_lost_steady_lead_s of that acceleration (MFG; HJB_d: the states as sensed)."""
-        return sn.states
-
     def _unplanned_by_braking(self, sn: Neighbours, step: int, unplanned: np.ndarray, own: np.ndarray) -> np.ndarray:
         """(m,) bool: sensed vehicles flagged by their braking against the plan (MFG; HJB_d: none); unplanned (m,):
         the entries already off the plan; own (n, 4): the rows' own states."""
@@ -424,9 +418,7 @@ class _DefaultBase:
                 threat = threat | gap | yl
                 # the own airframe's lag, when it has one (safety.backstop.OwnModel)
                 airframe = self._own_airframe(obs.step)
-                # a failed vehicle PX4's Hold flies back across the stream, predicted accelerating (escape_lost_steady_*)
-                st_esc = self._lost_steady_lead(sn, obs.step, prev_v, threat)
-                a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), st_esc, sn.owner, threat, trig, clear, bp,
+                a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
                                         self.preset.dt_s, self._escape_side(own, sn, hover_threat, side_at), hover_threat, od, brake_hyp=bh,
                                         **airframe)
             if np.any(push) and bp.crowd_cbf:
@@ -528,9 +520,6 @@ class DefaultMFGController(_DefaultBase):
         self._seen_v: np.ndarray | None = None
         self._seen_k: np.ndarray | None = None
         self._hover_k: np.ndarray | None = None     # per plan particle: the last step it hovered off the plan
-        # per plan particle: the acceleration last measured while the escape had it as a lost threat, and its step
-        self._lost_acc: np.ndarray | None = None
-        self._lost_acc_k: np.ndarray | None = None
         self._own_v_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' own velocities then)
         self._own_a_prev: tuple[int, np.ndarray] | None = None      # (step, the rows' commands then): act()
         self._plan_s_hist: dict[int, np.ndarray] = {}
@@ -940,40 +929,6 @@ class DefaultMFGController(_DefaultBase):
         known = part >= 0
         dr = states[known, 0:2] - self.plan.states[part[known], 0:2]
         out[known] = dr[:, 0] ** 2 + dr[:, 1] ** 2 > lost_m * lost_m
-        return out
-
-    def _lost_steady_lead(self, sn: Neighbours, step: int, prev_v: tuple[np.ndarray, np.ndarray] | None,
-                          threat: np.ndarray) -> np.ndarray:
-        """The sensed states (m, 4) the escape predicts from. A threat lost to the plan (_lost: a failed vehicle) whose
-        acceleration (v - v_prev) / dt was measured at this sample and the previous one, now above
-        escape_lost_steady_min_m_s2 and within escape_lost_steady_tol_m_s2 of the previous one, gets its velocity led by
-        escape_lost_steady_lead_s x the acceleration: the escape's constant-velocity prediction then follows a vehicle
-        that PX4's Hold flies back to its Hold point at its acceleration limit (BackstopParams). Records every known
-        entry's measured acceleration by plan particle (= vehicle id) for the next sample."""
-        bp, dt = self.preset.backstop, self.preset.dt_s
-        if bp.escape_lost_steady_lead_s <= 0 or prev_v is None or sn.ids is None or sn.states.shape[0] == 0:
-            return sn.states
-        N = self.plan.N
-        if self._lost_acc is None:
-            self._lost_acc, self._lost_acc_k = np.zeros((N, 2)), np.full(N, -1, dtype=np.int64)
-        pv, known = prev_v
-        part = self._particles_of(np.asarray(sn.ids, dtype=np.int64))
-        ok = known & (part >= 0)
-        acc = (sn.states[:, 2:4] - pv) / dt
-        out = sn.states
-        lost = np.flatnonzero(self._lost(sn.states, sn.ids) & threat & ok)
-        if lost.size:
-            p, a = part[lost], acc[lost]
-            before = self._lost_acc[p]
-            steady = ((self._lost_acc_k[p] == step - 1)
-                      & (np.hypot(a[:, 0], a[:, 1]) > bp.escape_lost_steady_min_m_s2)
-                      & (np.hypot(a[:, 0] - before[:, 0], a[:, 1] - before[:, 1]) < bp.escape_lost_steady_tol_m_s2))
-            if np.any(steady):
-                out = sn.states.copy()
-                out[lost[steady], 2:4] += bp.escape_lost_steady_lead_s * a[steady]
-        # every row senses a vehicle alike: the last entry's write per vehicle stands
-        self._lost_acc[part[ok]] = acc[ok]
-        self._lost_acc_k[part[ok]] = step
         return out
 
     def _spacing_now_m(self) -> float:

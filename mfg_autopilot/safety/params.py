@@ -217,18 +217,6 @@ class BackstopParams:
     # neighbour (0.25 m trigger) and chose a side at one step and the other at the next, and with PX4's lag each
     # reversal came 0.15 s later (thirtieth session, the 133 failure-inside-a-gust runs: docs/default_controller.md)
     escape_braking_as_hover: bool = True
-    # MFG: a threat lost to the plan (plan_lost_m: a failed vehicle) whose acceleration, measured from its velocity at
-    # the last three samples, is steady - the last period's mean above escape_lost_steady_min_m_s2 and within
-    # escape_lost_steady_tol_m_s2 of the period's before - is predicted by the escape with its velocity led by
-    # escape_lost_steady_lead_s of that acceleration (0 turns it off). PX4's Hold flies a failed vehicle that a gust blew
-    # past its Hold point back to it at its acceleration limit (MPC_ACC_HOR), a steady 2 m/s^2 for seconds, across the
-    # stream at up to 2.9 m/s; predicted at constant velocity it was 1.4 m off at the meeting (paper --gust with the
-    # failure, N = 1,200 seed 162: UAV 435, 0.068 m; led: 0.276 m). Led without the steadiness test (every lost vehicle,
-    # the acceleration of one period) the gust-fighting hover's swings made two more collided runs of the 133
-    # (docs/default_controller.md, "A failed vehicle flying back to its Hold point across the stream")
-    escape_lost_steady_lead_s: float = 0.5
-    escape_lost_steady_min_m_s2: float = 1.0
-    escape_lost_steady_tol_m_s2: float = 0.4
     # MFG: the escape's predictions and the barrier filter's constraints carry the own vehicle's disturbance (the
     # acceleration it flies beyond its command, from its own telemetry: guidance/disturbance.py, the observer of
     # TrackingParams.disturbance_smoothing) beyond own_disturbance_deadband_m_s2: a gust across the line of sight ate
@@ -255,9 +243,6 @@ class BackstopParams:
                                 ">= 0"),
                                ("escape_brake_hypothesis_min_m_s2", self.escape_brake_hypothesis_min_m_s2 >= 0, ">= 0"),
                                ("hover_latch_s", self.hover_latch_s >= 0, ">= 0"),
-                               ("escape_lost_steady_lead_s", self.escape_lost_steady_lead_s >= 0, ">= 0"),
-                               ("escape_lost_steady_min_m_s2", self.escape_lost_steady_min_m_s2 >= 0, ">= 0"),
-                               ("escape_lost_steady_tol_m_s2", self.escape_lost_steady_tol_m_s2 >= 0, ">= 0"),
                                ("hover_latch_max_speed_m_s", self.hover_latch_max_speed_m_s >= 0, ">= 0"),
                                ("hover_latch_max_towards_plan", -1 <= self.hover_latch_max_towards_plan <= 1,
                                 "in [-1, 1]")):
