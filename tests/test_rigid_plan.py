@@ -184,11 +184,11 @@ def test_property_the_translation_spreads_in_cruise_as_a_similarity(n, spacing, 
 
 
 def test_the_dense_pad_spreads_to_the_cruise_spacing_and_closes_before_the_site():
-    """dense N = 1,000 (0.5 m grid, 180 m flight): the plan reaches the default cruise spacing (1.4 m) between
+    """dense N = 1,000 (0.5 m grid, 180 m flight): the plan reaches the default cruise spacing (2.1 m) between
     neighbours and holds it through the middle of the flight (the gust window of --gust, 20-25 s, included)."""
     from mfg_autopilot.guidance.params import DEFAULT
     cruise = DEFAULT.cruise_spacing_m
-    assert cruise == pytest.approx(1.4)
+    assert cruise == pytest.approx(2.1)
     sc = make_scenario("dense", 1000, 1)
     S0 = np.concatenate([sc.initial_pos_m, np.zeros((1000, 2))], axis=1)
     plan = rigid_plan_for(S0, sc.destination_m, 0.5, COST, 4.0, 0.5, translation=True, cruise_spacing_m=cruise)
@@ -217,3 +217,68 @@ def test_the_dense_pad_at_ten_thousand_spreads_nearly_to_the_cruise_spacing_befo
     t = np.linspace(0.0, plan.T_spread, 60)
     rate = np.array([plan._scale(x)[1] for x in t])
     assert np.all(rate >= 0.0) and rate.max() * plan.spread_rho_m <= 3.0 + 1e-9
+
+
+@settings(max_examples=20, deadline=None, derandomize=True)
+@given(n_groups=st.integers(2, 5), per_group=st.integers(1, 40), radius=st.floats(10.0, 150.0),
+       spacing=st.floats(0.3, 2.0), cruise=st.floats(0.0, 4.0), seed=st.integers(0, 2**31 - 1))
+def test_property_the_half_turn_spreads_each_group_and_keeps_every_pair_apart(n_groups, per_group, radius, spacing,
+                                                                              cruise, seed):
+    """Given groups on grids around a centre, each flying to the mirror image of its centroid, with a cruise spacing:
+    when the half turn spreads each group about its own centroid (``RigidPlan._init_group_offsets``), then no pair -
+    inside a group or between groups - is ever closer than the smallest start distance; inside a group the neighbours
+    are cruise_scale x their start distance apart in the middle of the flight, where cruise_scale <= cruise / spacing;
+    the plan ends on its slots at rest; and its velocity and acceleration are the derivatives of its positions
+    (central differences, 1e-3 s, inside the spread's moves and in the middle of the turn)."""
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-100, 100, size=2)
+    ang = np.sort(rng.uniform(0, 2 * np.pi, size=n_groups))
+    pos, sites, grp = [], [], []
+    for g, a in enumerate(ang):
+        c = centre + radius * np.array([np.cos(a), np.sin(a)]) * (1 + 0.3 * g)
+        idx = np.arange(per_group)
+        cols = int(np.ceil(np.sqrt(per_group)))
+        grid = np.stack([idx // cols, idx % cols], axis=1) * spacing
+        p = c + grid - grid.mean(axis=0)
+        pos.append(p)
+        sites.append(np.tile(2 * centre - p.mean(axis=0), (per_group, 1)))
+        grp.append(np.full(per_group, g))
+    pos, sites, grp = np.concatenate(pos), np.concatenate(sites), np.concatenate(grp)
+    d0, _ = cKDTree(pos).query(pos, k=2)
+    if d0[:, 1].min() < 0.2:                       # groups that overlap at the start are not a scenario
+        return
+    s0 = float(d0[:, 1].min())
+    plan = rigid_plan_for(_states(pos, rng), sites, 0.5, COST, 4.0, 0.5, cruise_spacing_m=cruise)
+    assert plan is not None and plan.kind == "turn"
+    assert 1.0 <= plan.cruise_scale <= max(1.0, cruise / s0) + 1e-9
+    assert 2.0 * plan.T_spread <= plan.T + 1e-9
+    assert _min_distance_over(plan, dt=0.25) >= s0 - 1e-9
+    same = grp[:, None] == grp[None, :]
+    i, j = np.nonzero(np.triu(same, 1))
+    if i.size:
+        mid, _ = plan.at(0.5 * plan.T)
+        np.testing.assert_allclose(np.linalg.norm(mid[i, :2] - mid[j, :2], axis=1),
+                                   plan.cruise_scale * np.linalg.norm(pos[i] - pos[j], axis=1), rtol=1e-9)
+    for t in (0.37 * plan.T_spread, 0.5 * plan.T, plan.T - 0.41 * plan.T_spread) if plan.T_spread > 0.0 else (0.5 * plan.T,):
+        h = 1e-3
+        (sm, am), (s1, a1), (sp, ap) = plan.at(t - h), plan.at(t), plan.at(t + h)
+        np.testing.assert_allclose((sp[:, :2] - sm[:, :2]) / (2 * h), s1[:, 2:4], atol=1e-5)
+        np.testing.assert_allclose((sp[:, 2:4] - sm[:, 2:4]) / (2 * h), a1, atol=1e-3)
+    s_end, _ = plan.at(plan.T + 60.0)
+    np.testing.assert_allclose(s_end[:, :2], plan.slots_m, atol=1e-6)
+
+
+def test_the_half_turn_spreads_to_the_default_cruise_spacing_where_the_groups_leave_room():
+    """crossing / swap4 at N = 1,000 (groups far apart): each group reaches the default cruise spacing between its
+    neighbours in the middle of the turn; crossing N = 10,000 (two 5,000-UAV grids whose discs would meet) keeps its
+    start spacing (the disc certificate refuses a spread); circle (one UAV per group) has nothing to spread."""
+    from mfg_autopilot.guidance.params import DEFAULT
+    cruise = DEFAULT.cruise_spacing_m
+    for name, n, want in (("crossing", 1000, cruise), ("swap4", 1000, cruise), ("crossing", 10000, np.sqrt(2.0)),
+                          ("circle", 300, np.sqrt(2.0))):
+        sc = make_scenario(name, n, 3)
+        S0 = np.concatenate([sc.initial_pos_m, np.zeros((n, 2))], axis=1)
+        plan = rigid_plan_for(S0, sc.destination_m, 0.5, COST, 4.0, 0.5, cruise_spacing_m=cruise)
+        s, _ = plan.at(0.5 * plan.T)
+        d, _ = cKDTree(s[:, :2]).query(s[:, :2], k=2)
+        assert d[:, 1].min() == pytest.approx(want, rel=1e-6), name

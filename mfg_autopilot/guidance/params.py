@@ -172,8 +172,11 @@ class DefaultPreset(Preset):
                                     # (guidance/group_plan.py); if no schedule is found, the interacting plan
     group_plan_clearance_fraction: float = 0.75   # ... certified to keep other groups' particles this x the start/slot spacing apart
     rigid_translation: bool = True  # MFG: a single group's plan is its rigid translation to the site (False: the interacting plan)
-    cruise_spacing_m: float = 1.4   # ... which spreads about its centroid in cruise until neighbours are this far apart, and
-                                    # closes again before the site (a similarity: every distance only grows, then returns; 0: off)
+    cruise_spacing_m: float = 2.1   # ... which spreads about its centroid in cruise until neighbours are this far apart, and
+                                    # closes again before the site (a similarity: every distance only grows, then returns; 0: off);
+                                    # the half turn spreads each group about its own centroid the same way where the groups
+                                    # leave room (rigid_plan.py; 1.4 until the thirty-third session: room for the UAV behind
+                                    # a failed vehicle, docs/default_controller.md "Room behind every UAV")
     use_slots: bool = True          # destination as a site with one slot per UAV
     use_repulsion: bool = True
 

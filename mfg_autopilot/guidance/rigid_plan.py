@@ -25,6 +25,12 @@ the plan, decaying, let pairs of particles approach and measured worse: 5 collid
 N = 300 against 0). The action of particle j is the kinematic acceleration plus the model's wind drag,
 a_j = a_kin,j + c0 (v_j - v_o) (eq. 9), held over the control period like ``MeanFieldPlan``'s.
 
+Spread in cruise (``cruise_spacing_m``): the translation scales about its centroid, r_j(0) + s u + w + lambda(t)
+(r_j(0) - c0); the half turn scales each group about its own centroid, c + R(theta) ((cen_g - c) + (1 + lambda(t))
+e_j) + w, e_j = r_j(0) - cen_g, where a disc certificate at t = 0 shows the groups keep one spacing apart
+(``_init_group_offsets``). lambda rises on a rest-to-rest profile from t = 0 and returns to 0 by T: distances inside
+a group only grow, then return (docs/default_controller.md, "Room behind every UAV").
+
 Shapes: states (N, 4) [x_m, y_m, vx_m_s, vy_m_s]; accelerations (N, 2).
 """
 
@@ -148,12 +154,17 @@ class RigidPlan(TimedPlan):
         self.tau = float(wind_tau_s)
 
         if kind == "turn":
-            rho = float(np.max(np.linalg.norm(self.r0 - self.c[None, :], axis=1))) if self.N else 0.0
+            lam_c = self._init_group_offsets(cruise_spacing_m)
+            d = self.r0 - self.c[None, :]
+            # the farthest particle from c over the flight: |d + lambda e| is convex in lambda, so at lambda 0 or lambda_c
+            rho = float(np.max(np.maximum(np.linalg.norm(d, axis=1), np.linalg.norm(d + lam_c * self.e_grp, axis=1)))) \
+                if self.N else 0.0
             rho = max(rho, 1e-9)
             # |a| of the farthest particle <= a_kin: tangential alpha rho and centripetal omega^2 rho at most a_kin / 2 each
             self.w_max = min(v_max_m_s / rho, math.sqrt(0.5 * a_kin_max_m_s2 / rho))
             self.al_max = 0.5 * a_kin_max_m_s2 / rho
             self.T = _duration(math.pi, self.w_max, self.al_max)
+            self._init_turn_spread(lam_c, spread_v_max_m_s, a_kin_max_m_s2)
         else:
             d = self.c - self.r0.mean(axis=0)                 # translation: c is the target of the centroid
             self.dist = float(np.linalg.norm(d))
@@ -174,6 +185,49 @@ class RigidPlan(TimedPlan):
         rho = float(np.max(np.linalg.norm(self.r0 - self.cen0[None, :], axis=1))) if self.N else 0.0
         want = max(0.0, cruise_spacing_m / self.spacing_m - 1.0) * rho if np.isfinite(self.spacing_m) and self.spacing_m > 0 else 0.0
         D = min(want, _distance_within(0.5 * self.T, v_max, a_max))
+        if not (rho > 0.0 and D > 1e-9):
+            D = 0.0
+        self.spread_rho_m, self.spread_D_m = rho, D
+        self.spread_v_max, self.spread_a_max = v_max, a_max
+        self.T_spread = _duration(D, v_max, a_max)
+        self.cruise_scale = 1.0 + D / rho if D > 0.0 else 1.0
+
+    def _init_group_offsets(self, cruise_spacing_m: float) -> float:
+        """The half turn's spread (docs/default_controller.md, "The half turn spreads in cruise"): each group scales
+        about its own centroid, r_j = c + R(theta) ((cen_g - c) + (1 + lambda) e_j), e_j = r_j(0) - cen_g. Inside a
+        group every distance is (1 + lambda) times its start value; between two groups the relative layout does not
+        turn (both turn by the same R(theta)), so a pair's distance |cen_a - cen_b + (1 + lambda)(e_i - e_k)| is a
+        static function of lambda. Certificate, checked here: every pair of groups' discs of radius (1 + lambda_c)
+        rho_g about their centroids stay one spacing apart, |cen_a - cen_b| - (1 + lambda_c)(rho_a + rho_b) >=
+        spacing; lambda_c (from cruise_spacing_m / spacing) is lowered until it holds (0: no spread). Sets ``e_grp``
+        (N, 2); returns lambda_c."""
+        g = self.group
+        ng = int(g.max()) + 1 if self.N else 0
+        cnt = np.bincount(g, minlength=ng).astype(float)
+        cen = np.stack([np.bincount(g, self.r0[:, k], ng) for k in range(2)], axis=1) / np.maximum(cnt, 1.0)[:, None]
+        self.e_grp = self.r0 - cen[g] if self.N else np.zeros((0, 2))
+        sp = self.spacing_m
+        if not (np.isfinite(sp) and sp > 0.0 and cruise_spacing_m > sp and self.N):
+            return 0.0
+        rho_g = np.zeros(ng)
+        np.maximum.at(rho_g, g, np.linalg.norm(self.e_grp, axis=1))
+        if rho_g.max() <= 0.0:                             # single-vehicle groups (circle): nothing to spread
+            return 0.0
+        scale = cruise_spacing_m / sp
+        a, b = np.triu_indices(ng, 1)
+        reach = rho_g[a] + rho_g[b]
+        dcen = np.linalg.norm(cen[a] - cen[b], axis=1)
+        ok = reach > 0.0
+        if np.any(ok):
+            scale = min(scale, float(np.min((dcen[ok] - sp) / reach[ok])))
+        return max(0.0, scale - 1.0)
+
+    def _init_turn_spread(self, lam_c: float, v_max: float, a_max: float) -> None:
+        """The half turn's spread profile: lambda rises to lambda_c on a rest-to-rest move of the particle farthest
+        from its group's centroid (D = lambda_c rho, v_max, a_max), holds, and closes ending with the turn at T; lowered
+        until both moves fit in T (as the translation's ``_init_spread``)."""
+        rho = float(np.max(np.linalg.norm(self.e_grp, axis=1))) if self.N else 0.0
+        D = min(lam_c * rho, _distance_within(0.5 * self.T, v_max, a_max))
         if not (rho > 0.0 and D > 1e-9):
             D = 0.0
         self.spread_rho_m, self.spread_D_m = rho, D
@@ -211,12 +265,21 @@ class RigidPlan(TimedPlan):
         if self.kind == "turn":
             th, om, al = trapezoid(math.pi, self.w_max, self.al_max, t)
             cs, sn = math.cos(th), math.sin(th)
+            rot = lambda x: np.stack([cs * x[:, 0] - sn * x[:, 1], sn * x[:, 0] + cs * x[:, 1]], axis=1)   # noqa: E731
+            lam, lam_d, lam_dd = self._scale(t)
             d = self.r0 - self.c[None, :]
-            rd = np.stack([cs * d[:, 0] - sn * d[:, 1], sn * d[:, 0] + cs * d[:, 1]], axis=1)      # R(theta) d
-            jrd = np.stack([-rd[:, 1], rd[:, 0]], axis=1)                                          # J R(theta) d
+            if lam != 0.0 or lam_d != 0.0 or lam_dd != 0.0:
+                d = d + lam * self.e_grp                   # q = d + lambda e (each group scaled about its centroid)
+            rd = rot(d)                                    # R(theta) q
+            jrd = np.stack([-rd[:, 1], rd[:, 0]], axis=1)  # J R(theta) q
             pos = self.c[None, :] + rd + w[None, :]
             vel = om * jrd + wd[None, :]
             acc = al * jrd - om * om * rd + wdd[None, :]
+            if lam_d != 0.0 or lam_dd != 0.0:              # + R lambda' e, + 2 omega lambda' J R e + lambda'' R e
+                re = rot(self.e_grp)
+                jre = np.stack([-re[:, 1], re[:, 0]], axis=1)
+                vel += lam_d * re
+                acc += 2.0 * om * lam_d * jre + lam_dd * re
         else:
             s, sd, sdd = trapezoid(self.dist, self.v_max, self.a_max, t)
             pos = self.r0 + (s * self.u + w)[None, :]
@@ -262,5 +325,6 @@ def rigid_plan_for(S0: np.ndarray, sites_m: np.ndarray, dt_s: float, cost: CostP
     if np.max(np.abs(two_c - two_c[0][None, :])) <= rel_tol * scale * 1e3:
         c = 0.5 * two_c[0]
         slots = 2.0 * c[None, :] - r0                        # = site_g - (r_j(0) - centroid_g): the half turn
-        return RigidPlan(S0, sites, group, slots, "turn", c, dt_s, cost, v_max_m_s, a_kin_max_m_s2)
+        return RigidPlan(S0, sites, group, slots, "turn", c, dt_s, cost, v_max_m_s, a_kin_max_m_s2,
+                         cruise_spacing_m=cruise_spacing_m)
     return None
