@@ -19,12 +19,17 @@ from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import GustParams, SimConfig, simulate
 
 DEFAULT = preset_by_name("default")
+# The flights below are the traces each rule was written from, flown on the plan they were traced on: cruise spacing
+# 1.4 m (the default until the thirty-third session). With the default's 2.1 m the UAVs behind the failed vehicle have
+# the room to pass it without the rule, and a with/without comparison would show nothing (docs/default_controller.md,
+# "Room behind every UAV").
+TRACED = dataclasses.replace(DEFAULT, cruise_spacing_m=1.4)
 
 
 def _fail_in_gust(family: str, n: int, seed: int, steps: int, detour: dict | None = None, **rules) -> dict:
     """metrics of `mfg-swarm sim --scenario family --n n --seed seed --gust --fail-vehicle 10 --fail-at 20.15` flown
     for `steps`, with the backstop's rules (and the detour's, ``detour``) changed as given."""
-    preset = dataclasses.replace(DEFAULT, backstop=dataclasses.replace(DEFAULT.backstop, **rules),
+    preset = dataclasses.replace(TRACED, backstop=dataclasses.replace(DEFAULT.backstop, **rules),
                                  detour=dataclasses.replace(DEFAULT.detour, **(detour or {})))
     cfg = SimConfig(scenario=make_scenario(family, n, seed), mode="mfg", preset=preset, seed=seed, steps=steps,
                     fail_vehicle=10, fail_at_s=20.15, gust=GustParams())
