@@ -193,7 +193,7 @@ class RigidPlan(TimedPlan):
         self.cruise_scale = 1.0 + D / rho if D > 0.0 else 1.0
 
     def _init_group_offsets(self, cruise_spacing_m: float) -> float:
-        """The half turn's spread (docs/default_controller.md, "The half turn spreads in cruise"): each group scales
+        """The half turn's spread (docs/default_controller.md, "Room behind every UAV"): each group scales
         about its own centroid, r_j = c + R(theta) ((cen_g - c) + (1 + lambda) e_j), e_j = r_j(0) - cen_g. Inside a
         group every distance is (1 + lambda) times its start value; between two groups the relative layout does not
         turn (both turn by the same R(theta)), so a pair's distance |cen_a - cen_b + (1 + lambda)(e_i - e_k)| is a
@@ -237,7 +237,8 @@ class RigidPlan(TimedPlan):
 
     @property
     def spacing_now_m(self) -> float:
-        """The particles' smallest distance at step k: the start/slot spacing times the spread's scale (translation)."""
+        """The particles' smallest distance at step k: the start/slot spacing times the spread's scale (the translation's;
+        the half turn's inside each group - between groups its certificate keeps only the start spacing)."""
         return self.spacing_m * (1.0 + self._scale(self.k * self.dt_s)[0])
 
     @property
