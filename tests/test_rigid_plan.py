@@ -33,16 +33,12 @@ def _min_distance_over(plan: RigidPlan, dt=0.1) -> float:
     return dmin
 
 
-@settings(max_examples=25, deadline=None, derandomize=True)
-@given(n_groups=st.integers(2, 6), per_group=st.integers(1, 12), radius=st.floats(20.0, 300.0),
-       spacing=st.floats(0.3, 3.0), seed=st.integers(0, 2**31 - 1))
-def test_property_a_half_turn_plan_keeps_every_pair_at_its_start_distance(n_groups, per_group, radius, spacing, seed):
-    """Given groups on grids around a centre, each flying to the mirror image of its centroid, when the
-    rigid plan is flown, then no pair is ever closer than at the start, and everyone ends in its slot."""
-    rng = np.random.default_rng(seed)
+def _groups_around_a_centre(rng, n_groups, per_group, radius, spacing):
+    """Groups on grids at different distances around a random centre (rings), each flying to the mirror image of its
+    centroid: (start positions (N, 2), sites (N, 2), group index (N,), the centre (2,))."""
     centre = rng.uniform(-100, 100, size=2)
     ang = np.sort(rng.uniform(0, 2 * np.pi, size=n_groups))
-    pos, sites = [], []
+    pos, sites, grp = [], [], []
     for g, a in enumerate(ang):
         c = centre + radius * np.array([np.cos(a), np.sin(a)]) * (1 + 0.3 * g)    # different distances: rings
         idx = np.arange(per_group)
@@ -51,7 +47,18 @@ def test_property_a_half_turn_plan_keeps_every_pair_at_its_start_distance(n_grou
         p = c + grid - grid.mean(axis=0)
         pos.append(p)
         sites.append(np.tile(2 * centre - p.mean(axis=0), (per_group, 1)))
-    pos, sites = np.concatenate(pos), np.concatenate(sites)
+        grp.append(np.full(per_group, g))
+    return np.concatenate(pos), np.concatenate(sites), np.concatenate(grp), centre
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(n_groups=st.integers(2, 6), per_group=st.integers(1, 12), radius=st.floats(20.0, 300.0),
+       spacing=st.floats(0.3, 3.0), seed=st.integers(0, 2**31 - 1))
+def test_property_a_half_turn_plan_keeps_every_pair_at_its_start_distance(n_groups, per_group, radius, spacing, seed):
+    """Given groups on grids around a centre, each flying to the mirror image of its centroid, when the
+    rigid plan is flown, then no pair is ever closer than at the start, and everyone ends in its slot."""
+    rng = np.random.default_rng(seed)
+    pos, sites, _, centre = _groups_around_a_centre(rng, n_groups, per_group, radius, spacing)
     d0, _ = cKDTree(pos).query(pos, k=2)
     if d0[:, 1].min() < 0.2:                       # groups that overlap at the start are not a scenario
         return
@@ -231,19 +238,7 @@ def test_property_the_half_turn_spreads_each_group_and_keeps_every_pair_apart(n_
     the plan ends on its slots at rest; and its velocity and acceleration are the derivatives of its positions
     (central differences, 1e-3 s, inside the spread's moves and in the middle of the turn)."""
     rng = np.random.default_rng(seed)
-    centre = rng.uniform(-100, 100, size=2)
-    ang = np.sort(rng.uniform(0, 2 * np.pi, size=n_groups))
-    pos, sites, grp = [], [], []
-    for g, a in enumerate(ang):
-        c = centre + radius * np.array([np.cos(a), np.sin(a)]) * (1 + 0.3 * g)
-        idx = np.arange(per_group)
-        cols = int(np.ceil(np.sqrt(per_group)))
-        grid = np.stack([idx // cols, idx % cols], axis=1) * spacing
-        p = c + grid - grid.mean(axis=0)
-        pos.append(p)
-        sites.append(np.tile(2 * centre - p.mean(axis=0), (per_group, 1)))
-        grp.append(np.full(per_group, g))
-    pos, sites, grp = np.concatenate(pos), np.concatenate(sites), np.concatenate(grp)
+    pos, sites, grp, _ = _groups_around_a_centre(rng, n_groups, per_group, radius, spacing)
     d0, _ = cKDTree(pos).query(pos, k=2)
     if d0[:, 1].min() < 0.2:                       # groups that overlap at the start are not a scenario
         return

@@ -184,7 +184,13 @@ class RigidPlan(TimedPlan):
         self.cen0 = self.r0.mean(axis=0) if self.N else np.zeros(2)
         rho = float(np.max(np.linalg.norm(self.r0 - self.cen0[None, :], axis=1))) if self.N else 0.0
         want = max(0.0, cruise_spacing_m / self.spacing_m - 1.0) * rho if np.isfinite(self.spacing_m) and self.spacing_m > 0 else 0.0
-        D = min(want, _distance_within(0.5 * self.T, v_max, a_max))
+        self._set_spread(rho, want, v_max, a_max)
+
+    def _set_spread(self, rho: float, want_m: float, v_max: float, a_max: float) -> None:
+        """The spread's profile, shared by the translation and the half turn: the particle farthest from its centre
+        (rho) moves D = want_m out (v_max, a_max) from t = 0 and back ending at T, D lowered until both moves fit in T
+        (0: no spread). Sets spread_rho_m, spread_D_m, its limits, T_spread and cruise_scale = 1 + D / rho."""
+        D = min(want_m, _distance_within(0.5 * self.T, v_max, a_max))
         if not (rho > 0.0 and D > 1e-9):
             D = 0.0
         self.spread_rho_m, self.spread_D_m = rho, D
@@ -227,13 +233,7 @@ class RigidPlan(TimedPlan):
         from its group's centroid (D = lambda_c rho, v_max, a_max), holds, and closes ending with the turn at T; lowered
         until both moves fit in T (as the translation's ``_init_spread``)."""
         rho = float(np.max(np.linalg.norm(self.e_grp, axis=1))) if self.N else 0.0
-        D = min(lam_c * rho, _distance_within(0.5 * self.T, v_max, a_max))
-        if not (rho > 0.0 and D > 1e-9):
-            D = 0.0
-        self.spread_rho_m, self.spread_D_m = rho, D
-        self.spread_v_max, self.spread_a_max = v_max, a_max
-        self.T_spread = _duration(D, v_max, a_max)
-        self.cruise_scale = 1.0 + D / rho if D > 0.0 else 1.0
+        self._set_spread(rho, lam_c * rho, v_max, a_max)
 
     @property
     def spacing_now_m(self) -> float:
