@@ -60,6 +60,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     dt = float(np.asarray(z["dt_s"]).reshape(-1)[0])
     rows = prediction_errors(z["pos_m"][:, a.vehicle], z["vel_m_s"][:, a.vehicle], dt, range(k0, k1 + 1), a.horizon,
                              a.a_max)
+    if not rows:
+        raise SystemExit(f"{a.dir}: no step of {a.steps} has a later step in the flight ({z['pos_m'].shape[0]} samples)")
     print(f"{a.dir}: vehicle {a.vehicle}; error of the escape's hypotheses against the flown track, m")
     print("| step | t s | speed m/s | " + " | ".join(f"{t:g} s const-vel / braking" for t in rows[0]["t_s"]) + " |")
     print("|---|---|---|" + "---|" * len(rows[0]["t_s"]))

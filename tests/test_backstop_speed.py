@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 import _backstop_reference as ref
+from _traced import TRACED_CRUISE_SPACING_M
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -118,7 +119,7 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
 # with those off; the plans spread to 1.4 m in cruise, the spacing these perturbations (0.3 m shifts) were sized for: at
 # the default 2.1 m (thirty-third session) the one-row bank's neighbours never come close enough for the backstop to
 # act, and the comparison would check nothing
-AS_REFERENCE = dataclasses.replace(DEFAULT, cruise_spacing_m=1.4, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0, crowd_cbf=False,
+AS_REFERENCE = dataclasses.replace(DEFAULT, cruise_spacing_m=TRACED_CRUISE_SPACING_M, backstop=dataclasses.replace(DEFAULT.backstop, plan_lost_m=0.0, crowd_cbf=False,
                                                                          unplanned_flow_m_s=0.0, escape_yield=False,
                                                                          gap_push=False, escape_side_commit=0.0,
                                                                          unplanned_hover_clear_now=False,

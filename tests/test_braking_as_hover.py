@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from _traced import TRACED_CRUISE_SPACING_M
 import pytest
 
 from mfg_autopilot.presets import preset_by_name
@@ -19,11 +20,8 @@ from mfg_swarm.scenarios import make_scenario
 from mfg_swarm.sim import GustParams, SimConfig, simulate
 
 DEFAULT = preset_by_name("default")
-# The flights below are the traces each rule was written from, flown on the plan they were traced on: cruise spacing
-# 1.4 m (the default until the thirty-third session). With the default's 2.1 m the UAVs behind the failed vehicle have
-# the room to pass it without the rule, and a with/without comparison would show nothing (docs/default_controller.md,
-# "Room behind every UAV").
-TRACED = dataclasses.replace(DEFAULT, cruise_spacing_m=1.4)
+# the flights below are the traces each rule was written from, flown on the plan they were traced on (tests/_traced.py)
+TRACED = dataclasses.replace(DEFAULT, cruise_spacing_m=TRACED_CRUISE_SPACING_M)
 
 
 def _fail_in_gust(family: str, n: int, seed: int, steps: int, detour: dict | None = None, **rules) -> dict:

@@ -8,6 +8,7 @@ import dataclasses
 import math
 from functools import partial
 
+from _traced import TRACED_CRUISE_SPACING_M
 import numpy as np
 import pytest
 
@@ -188,9 +189,8 @@ def _gust_flight(family: str, n: int, seed: int, steps: int, fail: bool, bp: Bac
                  hold: str = MEASURED_HOLD, inner_loop: bool = MEASURED_INNER_LOOP) -> dict:
     """metrics.json of a --gust flight of the default preset with backstop bp (fail: vehicle 10 failing at 20.15 s,
     inside the gust, into the Hold ``hold``), with or without the inner loop."""
-    # flown on the plan these flights were traced on, cruise spacing 1.4 m (the default until the thirty-third session;
-    # with 2.1 m the traced encounters no longer happen: docs/default_controller.md, "Room behind every UAV")
-    preset = with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp, cruise_spacing_m=1.4), inner_loop)
+    # flown on the plan these flights were traced on (tests/_traced.py)
+    preset = with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp, cruise_spacing_m=TRACED_CRUISE_SPACING_M), inner_loop)
     cfg = SimConfig(scenario=make_scenario(family, n, seed), mode="mfg", preset=preset,
                     seed=seed, steps=steps, gust=GustParams(),
                     **({"fail_vehicle": 10, "fail_at_s": 20.15, "hold_model": hold} if fail else {}),

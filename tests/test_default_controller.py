@@ -3,6 +3,7 @@ must-show flights on a representative subset (the full sweep: bench/default_cont
 
 import dataclasses
 
+from _traced import TRACED_CRUISE_SPACING_M
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -518,9 +519,8 @@ def _lane_mates(x, a):
 def _lane_in_cruise(preset, scenario=("crossing", 50, 40)):
     """A plan in flight, by default the crossing plan in cruise (N = 50, step 40): (controller bank, plan states, a, b,
     c, v_hat) for the first UAV a with lane mates behind (b) and ahead (c), v_hat its unit flight direction. The plan
-    is the one these lanes were written for: cruise spacing 1.4 m (the default until the thirty-third session), so the
-    crossing lanes are 1.41 m apart, not spread to 2.1 m."""
-    c_ = _controller_in_cruise(*scenario, preset=dataclasses.replace(preset, cruise_spacing_m=1.4))
+    is the one these lanes were written for (tests/_traced.py): the crossing lanes 1.41 m apart, not spread to 2.1 m."""
+    c_ = _controller_in_cruise(*scenario, preset=dataclasses.replace(preset, cruise_spacing_m=TRACED_CRUISE_SPACING_M))
     x = c_.plan.states.copy()
     for a in range(x.shape[0]):
         try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from _traced import TRACED_CRUISE_SPACING_M
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -132,9 +133,9 @@ def test_the_lanes_pass_a_failed_vehicle_deflected_together():
     import dataclasses
 
     from mfg_autopilot.presets import preset_by_name
-    # the plan this was measured on: paper's block unspread (cruise spacing 1.4 m, the default until the thirty-third
-    # session; at 2.1 m the block passes the failed vehicle with room and the escape alone keeps more than 0.5 m)
-    on = dataclasses.replace(preset_by_name("default"), cruise_spacing_m=1.4)
+    # the plan this was measured on, paper's block unspread (tests/_traced.py; at 2.1 m the block passes the failed
+    # vehicle with room and the escape alone keeps more than 0.5 m)
+    on = dataclasses.replace(preset_by_name("default"), cruise_spacing_m=TRACED_CRUISE_SPACING_M)
     off = dataclasses.replace(on, detour=dataclasses.replace(on.detour, enabled=False))
     m_on, pass_on = _passes_after_onset(on)
     m_off, pass_off = _passes_after_onset(off)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from _traced import TRACED_CRUISE_SPACING_M
 import numpy as np
 import pytest
 
@@ -82,10 +83,9 @@ def test_a_hold_drifting_back_after_the_gust_is_passed():
     def fly(latch_s, inner=False):
         bp = dataclasses.replace(DEFAULT.backstop, hover_latch_s=latch_s)
         # (the paper's plant, as this was measured: with PX4's lag one of its flights keeps 0.13 m, the test's bound 0.2 m; issue 18)
-# (the plan these flights were traced on: cruise spacing 1.4 m, the default until the thirty-third session; with 2.1 m
-        # the counterfactual has the room to pass too: docs/default_controller.md, "Room behind every UAV")
+        # (the plan these flights were traced on: tests/_traced.py)
         return simulate(SimConfig(scenario=make_scenario("swap4", 1000, 78), mode="mfg",
-                                  preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp, cruise_spacing_m=1.4),
+                                  preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp, cruise_spacing_m=TRACED_CRUISE_SPACING_M),
                                                          inner), seed=78,
                                   steps=56, gust=GustParams(),
                                   fail_vehicle=10, fail_at_s=20.15, acc_lag_s=0.0), progress=False)[1]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from _traced import TRACED_CRUISE_SPACING_M
 import numpy as np
 import pytest
 
@@ -95,10 +96,9 @@ def test_a_failure_inside_a_gust_is_passed_with_the_own_gust_in_the_backstop(fam
     # is flown too)
     def fly(bp, hold="pd", inner=False, failed_pass=False):
         # (the paper's plant, as this was measured: with PX4's lag crossing seed 77 collides, UAV 61 and the failed 10 at 0.073 m; issue 18)
-# (the plan these flights were traced on: cruise spacing 1.4 m, the default until the thirty-third session; with 2.1 m
-        # the counterfactual has the room to pass too: docs/default_controller.md, "Room behind every UAV")
+        # (the plan these flights were traced on: tests/_traced.py)
         traj, m = simulate(SimConfig(scenario=make_scenario(family, 1000, seed), mode="mfg",
-                                     preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp, cruise_spacing_m=1.4),
+                                     preset=with_inner_loop(dataclasses.replace(DEFAULT, backstop=bp, cruise_spacing_m=TRACED_CRUISE_SPACING_M),
                                                             inner), seed=seed,
                                      steps=56, gust=GustParams(),
                                      fail_vehicle=10, fail_at_s=20.15, hold_model=hold, acc_lag_s=0.0), progress=False)
