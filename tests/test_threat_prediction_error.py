@@ -61,3 +61,22 @@ def test_a_vehicle_at_constant_velocity_is_the_constant_velocity_hypothesis(tmp_
         v0 = np.sqrt(5.0)
         assert np.allclose(r["braking_m"], v0 * np.array(r["t_s"]) - (v0 * tb - 0.5 * A_MAX * tb ** 2), atol=1e-12)
     assert "| 5 | 2.5 | 2.24 |" in capsys.readouterr().out
+
+
+def test_px4_hold_hypothesis_stays_on_its_hold_point_and_brings_a_moving_vehicle_back_to_it():
+    tool = _tool()
+    from mock_vehicle.plant import WindParams, braking_stop_m
+    calm = WindParams(mean_wind_m_s=(0.0, 0.0))
+    t = np.arange(0, 41) * 0.5
+    # given a vehicle at rest on its Hold point in calm air, then one entering Hold at 4 m/s along +x
+    still = tool.hold_hypothesis_m(np.array([3.0, -1.0]), np.zeros(2), np.zeros(2), np.array([3.0, -1.0]), t, wind=calm)
+    hold = braking_stop_m(np.array([[0.0, 0.0, 4.0, 0.0]]))[0]
+    moving = tool.hold_hypothesis_m(np.zeros(2), np.array([4.0, 0.0]), np.zeros(2), hold, t, wind=calm)
+    # then the first stays there, and the second (PX4's jerk-limited stop, not an a_max one) is still ahead of the a_max
+    # stop 1.5 s on, passes it, and holds within 5 cm of its Hold point 20 s on, never going sideways
+    assert np.abs(still - [3.0, -1.0]).max() < 1e-12
+    _, braking = tool.hypotheses_m(np.zeros(2), np.array([4.0, 0.0]), t, A_MAX)
+    assert moving[3, 0] > braking[3, 0] + 0.1
+    assert moving[:, 0].max() > 4.0 ** 2 / (2 * A_MAX) + 0.5
+    assert np.linalg.norm(moving[-1] - hold) < 0.05
+    assert np.abs(moving[:, 1]).max() < 1e-12
