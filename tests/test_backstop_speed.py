@@ -115,7 +115,8 @@ def test_backstop_acc_and_apply_backstop_are_bit_identical(seed):
 # fifth session; since the seventh also the crowded push's), the yield of a UAV off its particle (sixth session) and
 # the gap push (seventh) and the rules against a hovering vehicle (tenth: the lane side, the clearance by the spacing
 # now, the coasting trigger; eleventh: the trigger by the spacing now, the lane side over keep-right; their own tests
-# are in tests/test_default_controller.py) and the crowd's barrier filter (twentieth; tests/test_crowd_cbf.py): compared
+# are in tests/test_default_controller.py), the crowd's barrier filter (twentieth; tests/test_crowd_cbf.py) and the
+# UAV behind being the responsible one (thirty-fifth; tests/test_rear_responsible.py): compared
 # with those off; the plans spread to 1.4 m in cruise, the spacing these perturbations (0.3 m shifts) were sized for: at
 # the default 2.1 m (thirty-third session) the one-row bank's neighbours never come close enough for the backstop to
 # act, and the comparison would check nothing
@@ -125,7 +126,8 @@ AS_REFERENCE = dataclasses.replace(DEFAULT, cruise_spacing_m=TRACED_CRUISE_SPACI
                                                                          unplanned_hover_clear_now=False,
                                                                          unplanned_hover_trigger_now=False,
                                                                          escape_trigger_coast=False,
-                                                                         escape_side_over_keep_right=False))
+                                                                         escape_side_over_keep_right=False,
+                                                                         escape_rear_responsible=False))
 
 
 def _controller(scenario: str, n: int, rows: np.ndarray, seed: int):

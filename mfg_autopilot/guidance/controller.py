@@ -40,7 +40,8 @@ from mfg_autopilot.paper.meanfield import fit_initial_fpk_weights
 from mfg_autopilot.paper.model import cap_norm, lqr_value_weights, nominal_drift, optimal_action
 from mfg_autopilot.paper.params import Preset
 from mfg_autopilot.safety import backstop
-from mfg_autopilot.safety.backstop import Layer, apply_backstop, backstop_acc, cannot_brake_short, cbf_acc, escape_acc
+from mfg_autopilot.safety.backstop import (Layer, apply_backstop, backstop_acc, behind_row, cannot_brake_short, cbf_acc,
+                                          escape_acc)
 from mfg_autopilot.safety.kernels import braking_scan, distinct_dense, formation_sums, slot_claims
 
 __all__ = ["DefaultMFGController", "DefaultHJBController"]
@@ -268,6 +269,11 @@ class _DefaultBase:
         covered (m,): the entries that already get a response."""
         return np.zeros(sn.states.shape[0], dtype=bool)
 
+    def _rear_responsible(self) -> bool:
+        """Whether the escape leaves a vehicle behind the row to that vehicle (BackstopParams.escape_rear_responsible;
+        MFG only: HJB_d's escape is flown as it was measured)."""
+        return False
+
     def _backstop(self, own: np.ndarray, a_nom: np.ndarray, obs: Observation) -> np.ndarray:
         try:
             return self._backstop_rows(own, a_nom, obs)
@@ -415,6 +421,14 @@ class _DefaultBase:
                 hover_threat = threat & (hover | stopping)
                 # which threats may also be braking to a stop (BackstopParams.escape_brake_hypothesis; None: every one)
                 bh = hover | ~prev_v[1] | braked if prev_v is not None else None
+                if self._rear_responsible():
+                    # the UAV behind is the responsible one (BackstopParams.escape_rear_responsible): no escape for a
+                    # vehicle behind the row, unless it hovers or brakes into its Hold, or would come within its
+                    # clearance inside one control period (imminent: the one behind may be crowded, its barrier filter
+                    # taking only its half)
+                    behind = behind_row(own, sn.states, sn.owner, clear, self.preset.dt_s)
+                    threat = threat & ~(behind & ~(hover | stopping))
+                    gap = gap & ~behind
                 threat = threat | gap | yl
                 # the own airframe's lag, when it has one (safety.backstop.OwnModel)
                 airframe = self._own_airframe(obs.step)
@@ -1317,6 +1331,9 @@ class DefaultMFGController(_DefaultBase):
         out[idx[latch]] = True
         self._hover_k[part[out[idx]]] = step
         return out
+
+    def _rear_responsible(self) -> bool:
+        return self.preset.backstop.escape_rear_responsible
 
     def _seen_snapshot(self) -> tuple[np.ndarray, np.ndarray] | None:
         if self._seen_v is None or self.plan is None or self._plan_ids is None:

@@ -40,8 +40,8 @@ from mfg_autopilot.safety import kernels as backstop_kernels
 from mfg_autopilot.safety.layers import Layer, counts_by_layer, layer_names
 from mfg_autopilot.safety.params import BackstopParams
 
-__all__ = ["Layer", "layer_names", "counts_by_layer", "cannot_brake_short", "backstop_acc", "apply_backstop", "escape_acc",
-           "OwnModel", "NO_LAG", "own_response", "cbf_acc", "warm_up"]
+__all__ = ["Layer", "layer_names", "counts_by_layer", "cannot_brake_short", "behind_row", "backstop_acc", "apply_backstop",
+           "escape_acc", "OwnModel", "NO_LAG", "own_response", "cbf_acc", "warm_up"]
 
 
 def backstop_acc(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, bp: BackstopParams,
@@ -265,6 +265,29 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active
+
+
+def behind_row(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, clear_m: np.ndarray | None = None,
+               react_s: float = 0.0) -> np.ndarray:
+    """(m,) bool: the sensed entries behind their own row (owner (m,), own (n, 4)): dp . v_i < 0 with dp = r_j - r_i and
+    v_i the row's own velocity (BackstopParams.escape_rear_responsible: the UAV behind is the responsible one).
+
+    Of two vehicles i, j closing on each other (dp . (v_j - v_i) < 0) at least one has the other not behind it: if
+    dp . v_i < 0 and -dp . v_j < 0, then dp . (v_j - v_i) > 0 and they separate. A row at rest has nothing behind it.
+    clear_m (m,), if given: an entry closing along the line of sight at v_c > 0 that comes within clear_m inside
+    react_s, |dp| - clear_m <= v_c react_s, is not behind (imminent: the row acts on it whoever is responsible)."""
+    own = np.asarray(own, dtype=float)
+    q = np.asarray(sensed_states, dtype=float)
+    if q.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    rel = q[:, 0:2] - own[owner, 0:2]
+    behind = rel[:, 0] * own[owner, 2] + rel[:, 1] * own[owner, 3] < 0.0
+    if clear_m is not None and np.any(behind):
+        dv = q[:, 2:4] - own[owner, 2:4]
+        d = np.hypot(rel[:, 0], rel[:, 1])
+        vc = -(rel[:, 0] * dv[:, 0] + rel[:, 1] * dv[:, 1]) / np.maximum(d, 1e-12)
+        behind &= ~((vc > 0.0) & (d - np.asarray(clear_m, dtype=float) <= vc * react_s))
+    return behind
 
 
 def cannot_brake_short(own: np.ndarray, sensed_states: np.ndarray, owner: np.ndarray, clear_m: np.ndarray,

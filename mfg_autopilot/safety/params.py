@@ -217,6 +217,19 @@ class BackstopParams:
     # neighbour (0.25 m trigger) and chose a side at one step and the other at the next, and with PX4's lag each
     # reversal came 0.15 s later (thirtieth session, the 133 failure-inside-a-gust runs: docs/default_controller.md)
     escape_braking_as_hover: bool = True
+    # MFG: the UAV behind is the one responsible (as a driver is for the car ahead). A row does not wake its
+    # escape for a vehicle behind it (its position relative to the row's along the row's own velocity is negative) unless
+    # that vehicle hovers or brakes into its Hold (hover_max_speed_m_s, escape_braking_as_hover: a failed vehicle takes no
+    # responsibility), or would come within the escape's clearance inside one control period at the speed it closes
+    # (imminent: the one behind may be crowded, its barrier filter taking only its reciprocal half - swap4 --gust with a
+    # failure on the paper's plant, N = 1,000 s78, the PD Hold: UAVs 20 / 52, 0.148 -> 0.097 m without this exception);
+    # such a vehicle still weighs in the candidates of a row that escapes something else, as a planned neighbour does.
+    # A closing pair always keeps one responsible UAV: if each had the other behind, r.v_i < 0 and -r.v_j < 0 with
+    # r = p_j - p_i, then r.(v_j - v_i) > 0 and they separate. After a gust two healthy UAVs escaping each other at once
+    # swerved into each other, each predicting the other flying straight on (circle --gust with a failure, N = 2,000
+    # s231: UAVs 248 / 252, 0.064 m; 0.139 m with the rule; thirty-fifth session, docs/benchmarks.md). HJB_d does not
+    # apply it (its escape is flown as it was measured)
+    escape_rear_responsible: bool = True
     # MFG: the escape's predictions and the barrier filter's constraints carry the own vehicle's disturbance (the
     # acceleration it flies beyond its command, from its own telemetry: guidance/disturbance.py, the observer of
     # TrackingParams.disturbance_smoothing) beyond own_disturbance_deadband_m_s2: a gust across the line of sight ate
