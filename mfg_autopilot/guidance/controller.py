@@ -426,7 +426,10 @@ class _DefaultBase:
                     # vehicle behind the row, unless it hovers or brakes into its Hold, or would come within its
                     # clearance inside one control period (imminent: the one behind may be crowded, its barrier filter
                     # taking only its half)
-                    behind = behind_row(own, sn.states, sn.owner, clear, self.preset.dt_s)
+                    # (tested only where it can drop an entry)
+                    behind = np.zeros_like(threat)
+                    idx = np.flatnonzero(threat | gap)
+                    behind[idx] = behind_row(own, sn.states[idx], sn.owner[idx], clear[idx], self.preset.dt_s)
                     threat = threat & ~(behind & ~(hover | stopping))
                     gap = gap & ~behind
                 threat = threat | gap | yl
