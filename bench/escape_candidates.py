@@ -11,7 +11,8 @@ its nominal command a_nom and the command the escape sent, the sensed threats wi
 the UAV, velocity, trigger, clearance, hovering, braking hypothesis), then one line per first-phase candidate a_1 (a_nom,
 0, the escape directions at a_max / 2 and a_max): its component along the own velocity, and for each second phase a_2 in
 (a_nom, 0, -a_1, a_1) the conflict penalty, `S` if it keeps every sensed entry escape_hard_fraction x its clearance
-away (safe) or `u`, the worst entry's predicted distance over its clearance and when; then the penalty (the best
+away (safe) or `u`, the worst entry's predicted distance over its clearance (for a threat with a tube,
+BackstopParams.escape_tube_m_s2: over its clearance plus the tube's radius then) and when; then the penalty (the best
 phase's), the safe penalty (the best safe phase's), the effort and the lane-side cost. Lines in the escape's order:
 candidates with a safe phase first, by safe penalty + effort + side; then the rest by penalty + effort + side. The
 first line is what the escape takes; the tool checks it against the command the kernel sent and says so (a mismatch
@@ -61,7 +62,15 @@ def _prepared(escape_args: tuple, escape_kwargs: dict) -> dict:
 def candidate_table(p: dict, row: int) -> list[dict]:
     """One dict per first-phase candidate of active row `row` (its index among the active rows), in the escape's order
     (kernels.escape_candidates: safe candidates first by safe cost, then by cost)."""
-    seg = _kernels._segment_min_one
+    tube, tube_max = p["tube"], p["tube_max"]
+
+    def seg(track, e_or_j, e, a1, a2):
+        # the kernel's reading of one track: with the entry's tube (kernels._segment_eff_one) or without
+        if tube[e] > 0.0:
+            return _kernels._segment_eff_one(track, e_or_j, alpha, beta, a1[0], a1[1], a2[0], a2[1], p["clear"][e],
+                                             tube[e], tube_max, t_seg)
+        return _kernels._segment_min_one(track, e_or_j, alpha, beta, a1[0], a1[1], a2[0], a2[1])
+
     ents = np.flatnonzero(p["e_row"] == row)
     a_nom, v_hat, side_r = p["a_nom_r"][row], p["v_hat"][row], p["side_r"][row]
     alpha, beta, t_seg, T1 = p["alpha"], p["beta"], p["t_seg"], p["rel"].shape[1]
@@ -72,10 +81,10 @@ def candidate_table(p: dict, row: int) -> list[dict]:
         for a2 in ((a_nom, np.zeros(2), -a1, a1) if p["two_phase"] else (a1,)):
             pen_sum, safe, worst = 0.0, True, (np.inf, -1, 0.0)
             for e in ents:
-                dmin, k = seg(p["rel"], e, alpha, beta, a1[0], a1[1], a2[0], a2[1])
+                dmin, k = seg(p["rel"], e, e, a1, a2)
                 j = p["b_index"][e]
                 if j >= 0:
-                    db, kb = seg(p["rel_b"], j, alpha, beta, a1[0], a1[1], a2[0], a2[1])
+                    db, kb = seg(p["rel_b"], j, e, a1, a2)
                     if db < dmin:
                         dmin, k = db, kb
                 urg = p["tau_min_s"] / max(t_seg[k], p["tau_min_s"]) if p["urgency"] else 1.0
@@ -115,7 +124,7 @@ def report(step: int, uav: int, args: tuple, kwargs: dict, a_out: np.ndarray, ac
     b = inspect.signature(_backstop.escape_acc).bind(*args, **kwargs).arguments
     own, a_nom, states, owner, threat, trig, clear = (b[k] for k in ("own", "a_nom", "sensed_states", "owner", "threat",
                                                                     "trigger_m", "clear_m"))
-    hover, brake = b.get("hover"), b.get("brake_hyp")
+    hover, brake, tube = b.get("hover"), b.get("brake_hyp"), b.get("tube")
     print(f"step {step} (t = {step * b['commit_s']:g} s): UAV {uav} at {_fmt(own[uav, 0:2])} m, v {_fmt(own[uav, 2:4])} m/s, "
           f"a_nom {_fmt(a_nom[uav])} -> sent {_fmt(a_out[uav])} m/s^2")
     for e in np.flatnonzero((owner == uav) & threat):
@@ -123,7 +132,8 @@ def report(step: int, uav: int, args: tuple, kwargs: dict, a_out: np.ndarray, ac
         if np.hypot(*d) <= radius_m:
             print(f"  threat at {_fmt(d)} m ({np.hypot(*d):.2f} m), v {_fmt(states[e, 2:4])} m/s, trigger {trig[e]:.2f} m, "
                   f"clearance {clear[e]:.2f} m, hovering {bool(hover[e]) if hover is not None else False}, "
-                  f"braking hypothesis {bool(brake[e]) if brake is not None else True}")
+                  f"braking hypothesis {bool(brake[e]) if brake is not None else True}, "
+                  f"tube {bool(tube[e]) if tube is not None else False}")
     p = _prepared(args, kwargs)
     row = int(np.count_nonzero(active[:uav]))
     table = candidate_table(p, row)

@@ -761,10 +761,10 @@ def test_a_hovering_vehicle_off_the_plan_is_kept_clear_by_the_spacing_flown_now_
     seen = {}
 
     def spy(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side=None, hover=None, own_dist=None,
-            brake_hyp=None):
+            brake_hyp=None, **more):
         seen.update(states=states, owner=owner, threat=threat, trig=trig, clear=clear, hover=hover)
         return escape_acc(own, a_nom, states, owner, threat, trig, clear, bp, commit_s, side, hover, own_dist,
-                          brake_hyp=brake_hyp)
+                          brake_hyp=brake_hyp, **more)
 
     monkeypatch.setattr(ctl, "escape_acc", spy)
     for now in (True, False):

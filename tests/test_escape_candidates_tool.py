@@ -23,7 +23,7 @@ ARGS = ["--scenario", "crossing", "--n", "16", "--seed", "2", "--uav", "4", "--s
         "--fail-vehicle", "3", "--fail-at", "10"]
 
 
-@pytest.mark.parametrize("backstop", ["{}", '{"escape_effort": 0.3}'])
+@pytest.mark.parametrize("backstop", ["{}", '{"escape_effort": 0.3}', '{"escape_tube_m_s2": 1.0}'])
 def test_the_first_line_is_the_command_the_kernel_sent(capsys, backstop):
     # given the flight, and the escape's parameters as flown or changed
     # when the tool prints UAV 4's table at those steps
@@ -35,3 +35,6 @@ def test_the_first_line_is_the_command_the_kernel_sent(capsys, backstop):
     assert out.count("the first line is the command the kernel sent") == 3
     assert out.count("  a1 (") == 9
     assert "not active at step(s) 5" in out
+    # and the failed vehicle (braking into its Hold at 1 m/s, in the stream) is read with a tube exactly when it is on
+    # (BackstopParams.escape_tube_m_s2: the controller's choice of tube entries, the kernel's and the tool's reading)
+    assert ("tube True" in out) == ("escape_tube_m_s2" in backstop)

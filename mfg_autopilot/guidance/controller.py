@@ -435,9 +435,18 @@ class _DefaultBase:
                 threat = threat | gap | yl
                 # the own airframe's lag, when it has one (safety.backstop.OwnModel)
                 airframe = self._own_airframe(obs.step)
+                # a tube around the tracks of a hovering / braking threat that still moves where the plan flies (a
+                # vehicle failing into Hold: BackstopParams.escape_tube_m_s2), as wide as the room between the lanes
+                tube = None
+                if bp.escape_tube_m_s2 > 0.0 and sp_now >= bp.escape_tube_min_spacing_m and np.any(hover_threat):
+                    h = np.flatnonzero(hover_threat)
+                    vt = bp.escape_tube_min_speed_m_s
+                    h = h[sn.states[h, 2] ** 2 + sn.states[h, 3] ** 2 >= vt * vt]
+                    tube = np.zeros_like(threat)
+                    tube[h] = self._in_stream(sn.states[h])
                 a_esc, esc = escape_acc(own, cap_norm(a_nom, a_max), sn.states, sn.owner, threat, trig, clear, bp,
                                         self.preset.dt_s, self._escape_side(own, sn, hover_threat, side_at), hover_threat, od, brake_hyp=bh,
-                                        **airframe)
+                                        tube=tube, tube_max_m=bp.escape_tube_spacing_fraction * sp_now, **airframe)
             if np.any(push) and bp.crowd_cbf:
                 # a crowded row gets the reciprocal barrier filter over everything it senses instead (below): the
                 # summed push left UAVs that chased their particles through a blown crowd to cross each other

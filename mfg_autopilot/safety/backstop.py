@@ -204,7 +204,8 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
                trigger_m: np.ndarray, clear_m: np.ndarray, bp: BackstopParams, commit_s: float,
                side_pref: np.ndarray | None = None, hover: np.ndarray | None = None,
                own_dist_m_s2: np.ndarray | None = None, brake_hyp: np.ndarray | None = None,
-               own_model: OwnModel = NO_LAG, own_acc_m_s2: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               own_model: OwnModel = NO_LAG, own_acc_m_s2: np.ndarray | None = None,
+               tube: np.ndarray | None = None, tube_max_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Escape manoeuvre against vehicles that do not fly the plan (a sampled, multi-constraint safety filter).
 
     Each sensed entry e (own row owner[e]) has a clearance clear_m[e]; threat[e] marks the
@@ -242,6 +243,11 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     with a lag the own vehicle's displacement under a_1 then a_2 is alpha a_1 + beta a_2 + gamma a_f0
     (:func:`own_response`), a_f0 = own_acc_m_s2 (n, 2), the acceleration each row flies now (the controller's last
     command; None: 0). Without a lag (the default) the prediction is the closed form 0.5 t^2 a.
+    tube (m,) bool, optional: the threat entries whose position t seconds ahead is uncertain by
+    min(bp.escape_tube_m_s2 t^2 / 2, tube_max_m) (an unknown acceleration bound: a vehicle failing into Hold). For them
+    a track's closest distance d at t counts as d clear / (clear + that radius) - the clearance plus the tube - in the
+    trigger (the nominal and, with escape_trigger_coast, the coasting command) and in every candidate's penalty and
+    safety (kernels._segment_eff_one). None: no tube.
     Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]
@@ -261,7 +267,9 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
         np.zeros((n, 2)) if own_dist_m_s2 is None else np.ascontiguousarray(own_dist_m_s2, dtype=float),
         np.ones(sensed_states.shape[0], dtype=bool) if brake_hyp is None else np.ascontiguousarray(brake_hyp, dtype=bool),
         _escape_grid(bp.horizon_s, bp.escape_sample_s, commit_s, bp.a_max_m_s2, bp.escape_directions, own_model).gamma,
-        np.zeros((n, 2)) if own_acc_m_s2 is None else np.ascontiguousarray(own_acc_m_s2, dtype=float))
+        np.zeros((n, 2)) if own_acc_m_s2 is None else np.ascontiguousarray(own_acc_m_s2, dtype=float),
+        float(bp.escape_tube_m_s2), float(tube_max_m),
+        np.zeros(sensed_states.shape[0], dtype=bool) if tube is None else np.ascontiguousarray(tube, dtype=bool))
     if not np.any(active):
         return a_out, active
     return cap_norm(a_out, bp.a_max_m_s2), active

@@ -64,7 +64,18 @@ def _clip01(x):
 def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
     """backstop._segment_min for one entry e of the track p (., T + 1, 2) minus the own displacement
     alpha(t) a_1 + beta(t) a_2: (dmin, segment). A command a held over the horizon is alpha = beta =
-    half_t2 (0.5 t^2), a_1 = a, a_2 = 0 (the + 0.0 terms change no distance)."""
+    half_t2 (0.5 t^2), a_1 = a, a_2 = 0 (the + 0.0 terms change no distance). _segment_eff_one without a tube (its
+    times are not read then: alpha stands in for them)."""
+    return _segment_eff_one(p, e, alpha, beta, a1x, a1y, a2x, a2y, 1.0, 0.0, 0.0, alpha)
+
+
+@njit(cache=True)
+def _segment_eff_one(p, e, alpha, beta, a1x, a1y, a2x, a2y, scale, g, g_max, t_seg):
+    """_segment_min_one with a tube (backstop.escape_acc's ``tube``): the entry's position t seconds ahead is uncertain
+    by grow(t) = min(g t^2 / 2, g_max) (g: its unknown acceleration bound), and segment s's closest distance d is read
+    as d_eff = d scale / (scale + grow(t_seg[s])) (the radius at the segment's end: the larger), so that the penalty's
+    scale / d_eff = (scale + grow) / d asks for the clearance ``scale`` plus the tube. (min d_eff, its segment); g = 0
+    is the plain closest distance, bit for bit (t_seg is not read)."""
     T = p.shape[1] - 1
     best = 0.0
     kbest = 0
@@ -80,6 +91,10 @@ def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
         qx = px0 + tau * ddx
         qy = py0 + tau * ddy
         dist = math.sqrt(qx * qx + qy * qy)
+        if g > 0.0:
+            grow = _min(0.5 * g * t_seg[s] * t_seg[s], g_max)
+            if grow > 0.0:
+                dist = dist * scale / (scale + grow)
         if s == 0:
             best = dist
             kbest = 0
@@ -98,7 +113,7 @@ def _segment_min_one(p, e, alpha, beta, a1x, a1y, a2x, a2y):
 @njit(cache=True)
 def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed, a_nom_r,
                       v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den, effort_w, lateral_cost,
-                      a_max2, side_r, side_w, a_max, hard_fraction):
+                      a_max2, side_r, side_w, a_max, hard_fraction, tube, tube_max):
     """The escape's choice of first-phase command per active row: (a_1 (r, 2), chosen (r,) bool).
 
     rel (m', T + 1, 2): constant-velocity tracks relative to the own coasting vehicle; rel_b (m_b, T + 1, 2) the
@@ -110,6 +125,7 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
     side_r (r, 2): the side the row passes a hovering vehicle on (a unit vector across its track, or 0);
     a candidate against it costs side_w max(0, -side_r . a_1) / a_max (guidance.controller._escape_side).
     chosen[r] is False where no candidate had a finite cost below inf (the row keeps a_nom).
+    tube (m',): each entry's tube growth g (0: none; kernels._segment_eff_one with tube_max, its clearance the scale).
     hard_fraction > 0: safety first - an (a_1, a_2) is *safe* if every entry's predicted closest approach is at least
     hard_fraction x its clearance. If some a_1 has a safe a_2, the row takes the cheapest such a_1, its cost taken over
     its safe second phases only; if none has, the cheapest a_1 by the cost alone, as with hard_fraction = 0 (a least
@@ -159,11 +175,19 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 safe[i] = True
             for e in range(m):
                 i = e_row[e]
-                dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
+                if tube[e] > 0.0:
+                    dmin, k = _segment_eff_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1], clear[e],
+                                               tube[e], tube_max, t_seg)
+                else:
+                    dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
                 j = b_index[e]
                 if j >= 0:
-                    db, kb = _segment_min_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0],
-                                              a2[i, 1])
+                    if tube[e] > 0.0:
+                        db, kb = _segment_eff_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1],
+                                                  clear[e], tube[e], tube_max, t_seg)
+                    else:
+                        db, kb = _segment_min_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0],
+                                                  a2[i, 1])
                     if db < dmin:
                         dmin = db
                         k = kb
@@ -247,7 +271,7 @@ def _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist, gam
 def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t, half_t2, alpha, beta, t_seg, cand_fixed,
                 a_max, sample_s, u_noise_m_s, threat_weight, planned_weight, two_phase, urgency, tau_min_s, d_floor_m,
                 keep_right, keep_right_den, effort_w, lateral_cost, a_max2, side_w, trigger_coast, side_over_keep_right,
-                hard_fraction, side_pref, hover, dist, brake_hyp, gamma, acc0):
+                hard_fraction, side_pref, hover, dist, brake_hyp, gamma, acc0, tube_g, tube_max, tube_mask):
     """backstop.escape_acc before its final cap: (command (n, 2), active (n,)), for at least one sensed entry and at
     least one threat. Same operations, in the same order, as the numpy code (module docstring). hover (m,) bool: the
     hovering threat entries; with trigger_coast a row is also active if coasting (a = 0 over the horizon) brings such an
@@ -256,7 +280,8 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     brake_hyp (m,) bool: the threats that may also brake to a stop (the others' braking track is their constant-velocity
     one, so the minimum over both hypotheses is that one's). half_t2, alpha, beta, gamma (T + 1,) and acc0 (n, 2): the
     own vehicle's displacement half_t2 a (a held) or alpha a_1 + beta a_2, plus gamma acc0 (the acceleration it flies
-    now; backstop.OwnModel)."""
+    now; backstop.OwnModel). tube_g, tube_max and tube_mask (m,) bool: the threat entries read with a tube
+    (_segment_eff_one) in the trigger and in the choice."""
     n = own.shape[0]
     m = sensed_states.shape[0]
     T1 = t.shape[0]
@@ -310,6 +335,18 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             if bh:
                 d4, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
                 dn = _min(dn, d4)
+        if tube_g > 0.0 and tube_mask[ti[j]]:
+            # the same tracks read with the tube (the trigger plus its radius): the nominal command held, and (a tube
+            # entry hovers or brakes) coasting; each at constant velocity and, with the hypothesis, braking
+            tg = trigger_m[ti[j]]
+            for c in range(2 if trigger_coast else 1):
+                ax = a_nom[o, 0] if c == 0 else 0.0
+                ay = a_nom[o, 1] if c == 0 else 0.0
+                d5, _ = _segment_eff_one(rel_t, j, half_t2, half_t2, ax, ay, 0.0, 0.0, tg, tube_g, tube_max, t_seg)
+                dn = _min(dn, d5)
+                if bh:
+                    d6, _ = _segment_eff_one(rel_tb, j, half_t2, half_t2, ax, ay, 0.0, 0.0, tg, tube_g, tube_max, t_seg)
+                    dn = _min(dn, d6)
         if dn < trigger_m[ti[j]]:
             active[o] = True
     r = 0
@@ -341,6 +378,7 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
     rel_b = np.empty((n_bt, T1, 2))
     _tracks(own, sensed_states, owner, ent, t, b_of, back, rel, rel_b, dist, gamma, acc0)
     e_row = np.empty(n_ent, dtype=np.int64)
+    tube = np.zeros(n_ent)
     b_index = np.full(n_ent, -1, dtype=np.int64)
     wgt = np.empty(n_ent)
     clear = np.empty(n_ent)
@@ -352,6 +390,8 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         o = owner[e]
         e_row[q] = pos[o]
         clear[q] = clear_m[e]
+        if threat[e] and tube_mask[e]:
+            tube[q] = tube_g
         wgt[q] = threat_weight if threat[e] else planned_weight
         # 'keep right': the approach's velocity from the first segment, -u rotated +90 deg
         usx = rel[q, 1, 0] - rel[q, 0, 0]
@@ -391,7 +431,8 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
             v_hat[k, 1] = 0.0
     a_best, chosen = escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, alpha, beta, t_seg, cand_fixed,
                                        a_nom_r, v_hat, two_phase, urgency, tau_min_s, d_floor_m, keep_right, keep_right_den,
-                                       effort_w, lateral_cost, a_max2, side_r, side_w, a_max, hard_fraction)
+                                       effort_w, lateral_cost, a_max2, side_r, side_w, a_max, hard_fraction, tube,
+                                       tube_max)
     for k in range(r):
         if chosen[k]:
             a_out[rows[k], 0] = a_best[k, 0]
