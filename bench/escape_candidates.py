@@ -65,11 +65,9 @@ def candidate_table(p: dict, row: int) -> list[dict]:
     tube, tube_max = p["tube"], p["tube_max"]
 
     def seg(track, e_or_j, e, a1, a2):
-        # the kernel's reading of one track: with the entry's tube (kernels._segment_eff_one) or without
-        if tube[e] > 0.0:
-            return _kernels._segment_eff_one(track, e_or_j, alpha, beta, a1[0], a1[1], a2[0], a2[1], p["clear"][e],
-                                             tube[e], tube_max, t_seg)
-        return _kernels._segment_min_one(track, e_or_j, alpha, beta, a1[0], a1[1], a2[0], a2[1])
+        # the kernel's reading of one track, with the entry's tube (kernels._segment_eff_one; none: tube[e] = 0)
+        return _kernels._segment_eff_one(track, e_or_j, alpha, beta, a1[0], a1[1], a2[0], a2[1], p["clear"][e],
+                                         tube[e], tube_max, t_seg)
 
     ents = np.flatnonzero(p["e_row"] == row)
     a_nom, v_hat, side_r = p["a_nom_r"][row], p["v_hat"][row], p["side_r"][row]

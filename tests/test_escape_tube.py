@@ -43,6 +43,15 @@ def test_the_tube_reads_each_distance_through_its_radius_and_none_is_the_plain_m
     # and a tube only shrinks the distance, by no more than its cap
     assert de <= d + 1e-12
     assert de >= d * scale / (scale + g_max) - 1e-12
+    # and both are what an independent reading gives: each segment's closest distance to the relative track minus the
+    # own displacement (numpy, as the reference escape), through the radius at the segment's end
+    q = p[0] - half_t2[:, None] * np.array([ax, ay])
+    d0_, dd = q[:-1], q[1:] - q[:-1]
+    tau = np.clip(-np.sum(d0_ * dd, axis=1) / np.maximum(np.sum(dd * dd, axis=1), 1e-300), 0.0, 1.0)
+    dist = np.linalg.norm(d0_ + tau[:, None] * dd, axis=1)
+    assert d == pytest.approx(dist.min(), rel=1e-9, abs=1e-12)
+    grow = np.minimum(0.5 * g * t_seg ** 2, g_max)
+    assert de == pytest.approx(np.min(dist * scale / (scale + grow)), rel=1e-9, abs=1e-12)
 
 
 def test_the_radius_grows_with_the_time_of_the_approach_up_to_its_cap():

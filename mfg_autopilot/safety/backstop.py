@@ -245,9 +245,9 @@ def escape_acc(own: np.ndarray, a_nom: np.ndarray, sensed_states: np.ndarray, ow
     command; None: 0). Without a lag (the default) the prediction is the closed form 0.5 t^2 a.
     tube (m,) bool, optional: the threat entries whose position t seconds ahead is uncertain by
     min(bp.escape_tube_m_s2 t^2 / 2, tube_max_m) (an unknown acceleration bound: a vehicle failing into Hold). For them
-    a track's closest distance d at t counts as d clear / (clear + that radius) - the clearance plus the tube - in the
-    trigger (the nominal and, with escape_trigger_coast, the coasting command) and in every candidate's penalty and
-    safety (kernels._segment_eff_one). None: no tube.
+    a track's closest distance d at t counts as d c / (c + that radius) - the clearance c plus the tube - in every read
+    of the trigger (c: its trigger) and in every candidate's penalty and safety (c: its clearance;
+    kernels._segment_eff_one). None: no tube.
     Returns (command (n, 2), active (n,)).
     """
     n = own.shape[0]

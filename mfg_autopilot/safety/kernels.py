@@ -175,19 +175,13 @@ def escape_candidates(rel, rel_b, b_index, e_row, wgt, clear, conflict, left, al
                 safe[i] = True
             for e in range(m):
                 i = e_row[e]
-                if tube[e] > 0.0:
-                    dmin, k = _segment_eff_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1], clear[e],
-                                               tube[e], tube_max, t_seg)
-                else:
-                    dmin, k = _segment_min_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1])
+                # (tube[e] = 0: the plain closest distance, bit for bit)
+                dmin, k = _segment_eff_one(rel, e, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1], clear[e],
+                                           tube[e], tube_max, t_seg)
                 j = b_index[e]
                 if j >= 0:
-                    if tube[e] > 0.0:
-                        db, kb = _segment_eff_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1],
-                                                  clear[e], tube[e], tube_max, t_seg)
-                    else:
-                        db, kb = _segment_min_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0],
-                                                  a2[i, 1])
+                    db, kb = _segment_eff_one(rel_b, j, alpha, beta, a1[i, 0], a1[i, 1], a2[i, 0], a2[i, 1], clear[e],
+                                              tube[e], tube_max, t_seg)
                     if db < dmin:
                         dmin = db
                         k = kb
@@ -325,28 +319,20 @@ def escape_rows(own, a_nom, sensed_states, owner, threat, trigger_m, clear_m, t,
         o = owner[ti[j]]
         # (a threat without the braking hypothesis has its braking track equal to its constant-velocity one: skipped)
         bh = brake_hyp[ti[j]]
-        dn, _ = _segment_min_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
+        # a tube entry's tracks are read with the tube (the trigger plus its radius); g = 0: the plain distance
+        tg = trigger_m[ti[j]]
+        g = tube_g if tube_mask[ti[j]] else 0.0
+        dn, _ = _segment_eff_one(rel_t, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0, tg, g, tube_max, t_seg)
         if bh:
-            d2, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0)
+            d2, _ = _segment_eff_one(rel_tb, j, half_t2, half_t2, a_nom[o, 0], a_nom[o, 1], 0.0, 0.0, tg, g, tube_max,
+                                     t_seg)
             dn = _min(dn, d2)
         if trigger_coast and hover[ti[j]]:
-            d3, _ = _segment_min_one(rel_t, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
+            d3, _ = _segment_eff_one(rel_t, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0, tg, g, tube_max, t_seg)
             dn = _min(dn, d3)
             if bh:
-                d4, _ = _segment_min_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0)
+                d4, _ = _segment_eff_one(rel_tb, j, half_t2, half_t2, 0.0, 0.0, 0.0, 0.0, tg, g, tube_max, t_seg)
                 dn = _min(dn, d4)
-        if tube_g > 0.0 and tube_mask[ti[j]]:
-            # the same tracks read with the tube (the trigger plus its radius): the nominal command held, and (a tube
-            # entry hovers or brakes) coasting; each at constant velocity and, with the hypothesis, braking
-            tg = trigger_m[ti[j]]
-            for c in range(2 if trigger_coast else 1):
-                ax = a_nom[o, 0] if c == 0 else 0.0
-                ay = a_nom[o, 1] if c == 0 else 0.0
-                d5, _ = _segment_eff_one(rel_t, j, half_t2, half_t2, ax, ay, 0.0, 0.0, tg, tube_g, tube_max, t_seg)
-                dn = _min(dn, d5)
-                if bh:
-                    d6, _ = _segment_eff_one(rel_tb, j, half_t2, half_t2, ax, ay, 0.0, 0.0, tg, tube_g, tube_max, t_seg)
-                    dn = _min(dn, d6)
         if dn < trigger_m[ti[j]]:
             active[o] = True
     r = 0
